@@ -1,0 +1,29 @@
+"""Helpers for benchmark scripts: median timing and JSON-line output."""
+
+from __future__ import annotations
+
+import json
+import statistics
+import sys
+import time
+from typing import Any, Callable
+
+import jax
+
+
+def emit(name: str, value: float, unit: str, **extra: Any) -> None:
+    """Prints one benchmark figure as a JSON line."""
+    print(json.dumps({"name": name, "value": round(float(value), 4), "unit": unit, **extra}))
+    sys.stdout.flush()
+
+
+def median_seconds(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:
+    """Median wall time of fn() (outputs blocked on), after warm-up calls that compile."""
+    for _ in range(warmup):
+        jax.block_until_ready(fn())
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        jax.block_until_ready(fn())
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)

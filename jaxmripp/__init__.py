@@ -1,0 +1,3 @@
+"""jaxmripp: multi-robot informative path planning, trained end to end in JAX."""
+
+__version__ = "0.1.0"
