@@ -160,6 +160,8 @@ class EvalConfig:
     trials: int = 10
     seed: int = 1000
     layout: str = "random"
+    greedy_kappa: float = 1.0  # tuned on training-layout worlds: see README
+    greedy_lambda: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -283,6 +285,8 @@ RULES: dict[str, tuple] = {
     "eval.trials": _range(1, 100_000),
     "eval.seed": _range(0, 2**31 - 1),
     "eval.layout": _choice("grid", "random"),
+    "eval.greedy_kappa": _NONNEG,
+    "eval.greedy_lambda": _NONNEG,
 }
 PLANNERS = ("policy", "random", "greedy", "coordinated", "mcts", "oracle")
 
@@ -308,6 +312,9 @@ def _cross_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))
+    if cfg.train.updates % cfg.train.updates_per_chunk:
+        problems.append(("train.updates", cfg.train.updates,
+                         f"a multiple of train.updates_per_chunk = {cfg.train.updates_per_chunk}"))
     if cfg.train.envs % cfg.ppo.minibatches:
         problems.append(("ppo.minibatches", cfg.ppo.minibatches,
                          f"a divisor of train.envs = {cfg.train.envs}"))

@@ -1,5 +1,29 @@
-"""Onboard planner runtime: NumPy only, never imports jax or flax (it runs on drones)."""
+"""Onboard planner runtime: NumPy only, never imports jax or flax (it runs on drones).
 
+    from jaxmripp.runtime import OnboardPlanner
+    planner = OnboardPlanner.load("runs/default/export", robot_id=0, budget=10 / 3)
+    planner.sense(position, heading, voxels, values, n_seen)   # every round
+    radio.send(planner.message()); [planner.receive(m) for m in radio.inbox()]
+    decision = planner.decide()                                 # decision.pose, .reason
+
+See `jaxmripp.runtime.planner` for the round, `weights` for the export format and
+`messages` for the radio protocol.
+"""
+
+from jaxmripp.runtime.candidates import Candidates
+from jaxmripp.runtime.errors import (CorruptWeightsError, InvalidPoseError, MessageError,
+                                     PlannerStateError, ProtocolVersionError, RuntimeInputError,
+                                     WeightsFormatError)
+from jaxmripp.runtime.messages import PROTOCOL_VERSION, Message, decode, encode
+from jaxmripp.runtime.planner import Decision, OnboardPlanner
 from jaxmripp.runtime.policy import NumpyPolicy
+from jaxmripp.runtime.weights import (FEATURES, FORMAT_VERSION, ROBOT_STATE, ExportedPolicy,
+                                      RuntimeSpec, load)
 
-__all__ = ["NumpyPolicy"]
+__all__ = [
+    "Candidates", "CorruptWeightsError", "Decision", "ExportedPolicy", "FEATURES",
+    "FORMAT_VERSION", "InvalidPoseError", "Message", "MessageError", "NumpyPolicy",
+    "OnboardPlanner", "PROTOCOL_VERSION", "PlannerStateError", "ProtocolVersionError",
+    "ROBOT_STATE", "RuntimeInputError", "RuntimeSpec", "WeightsFormatError", "decode",
+    "encode", "load",
+]

@@ -1,0 +1,67 @@
+"""Sensing throughput: cast + occupancy update for envs x robots casts per call.
+
+Run from the repository root: `python benchmarks/sensing.py [--envs 1024] [--size 50]`.
+Prints JSON lines; `sensing.robot_casts_per_s` is the default ray-cast camera.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from common import emit, median_seconds  # noqa: E402
+from jaxmripp import sensing, world  # noqa: E402
+from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
+
+
+def sense_step(worlds, position, heading, occupancy, sensor, size):
+    """(E,) worlds, (E, N, 3) positions, (E, N) headings, (E, N, G, G, G) maps."""
+    def per_env(w, pos, head, occ):
+        casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(w, pos, head, sensor, size)
+        return jax.vmap(sensing.update_occupancy)(occ, casts), sensing.utility(casts)
+
+    return jax.vmap(per_env)(worlds, position, heading, occupancy)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--robots", type=int, default=3)
+    parser.add_argument("--size", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=5)
+    args = parser.parse_args()
+    size, envs, robots = args.size, args.envs, args.robots
+
+    cfg = WorldConfig(size=size, layout="random")
+    keys = jax.random.split(jax.random.PRNGKey(0), envs + 1)
+    worlds = jax.jit(jax.vmap(lambda k: world.generate(k, cfg)))(keys[1:])
+    key_p, key_h = jax.random.split(keys[0])
+    position = jax.random.uniform(key_p, (envs, robots, 3), maxval=jnp.array([1.0, 1.0, 0.6]))
+    heading = jax.random.randint(key_h, (envs, robots), 0, 4)
+
+    for model in ("raycast", "frustum"):
+        sensor = dataclasses.replace(SensorConfig(), model=model)
+        step = jax.jit(sense_step, static_argnums=(4, 5), donate_argnums=3)
+        state = {"occ": jnp.broadcast_to(sensing.empty_occupancy(size),
+                                         (envs, robots, size, size, size)).copy()}
+
+        def run():
+            state["occ"], seen = step(worlds, position, heading, state["occ"], sensor, size)
+            return seen
+
+        seconds = median_seconds(run, repeats=args.repeats)
+        name = "sensing.robot_casts_per_s" if model == "raycast" else f"sensing.{model}_casts_per_s"
+        emit(name, envs * robots / seconds, "casts/s", envs=envs, robots=robots, size=size,
+             view_voxels=sensing.view_size(sensor, size), seconds=round(seconds, 4))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,76 @@
+"""Evaluate planners: `python eval.py --config configs/eval_paper.yaml [--policy NAME=RUN_DIR ...]
+[--out DIR] [section.key=value ...]`.
+
+Without --policy only the baselines in eval.planners run. Each --policy restores a trained
+run (its config.yaml and checkpoints) under the given name; repeat it to compare several
+(e.g. the ablations of configs/eval_ablation.yaml). Results go to DIR (default: the first
+policy's RUN_DIR/eval, else runs/<config name>/eval): results.md, runs.csv, runs.json,
+summary.json and plots.
+"""
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from jaxmripp import config as cfgmod
+
+
+def parse_policy(text: str) -> tuple[str, Path]:
+    name, sep, run_dir = text.partition("=")
+    if not sep:
+        name, run_dir = "policy", text
+    return name.strip(), Path(run_dir)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--config", default="configs/eval_paper.yaml")
+    parser.add_argument("--policy", action="append", default=[], metavar="NAME=RUN_DIR",
+                        help="a trained run to evaluate under NAME (repeatable)")
+    parser.add_argument("--best", action="store_true", help="restore the best checkpoints")
+    parser.add_argument("--out", help="output folder")
+    parser.add_argument("--no-render", action="store_true", help="skip pictures and GIFs")
+    parser.add_argument("--no-gif", action="store_true", help="skip the GIFs only")
+    parser.add_argument("--no-timing", action="store_true",
+                        help="skip the separate planner.act timing (one compile less per cell)")
+    parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. eval.worlds=5")
+    args = parser.parse_args(argv)
+    try:
+        cfg = cfgmod.load(args.config, args.overrides)
+        policies = [parse_policy(p) for p in args.policy]
+        for name, run_dir in policies:
+            if not (run_dir / "config.yaml").is_file():
+                raise cfgmod.ConfigError(f"--policy {name}={run_dir}: no config.yaml there")
+        if len({n for n, _ in policies}) != len(policies):
+            raise cfgmod.ConfigError("--policy: names must be distinct (NAME=RUN_DIR)")
+    except cfgmod.ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    from jaxmripp import pipeline, sweep  # noqa: PLC0415 (after argument errors)
+
+    planners = {}
+    for name, run_dir in policies:
+        run_cfg = cfgmod.load(run_dir / "config.yaml")
+        for note in sweep.policy_mismatches(run_cfg, cfg):
+            print(f"note: {name} was trained with {note}")
+        planners[name] = pipeline.trained_planner(run_cfg, run_dir, best=args.best)._replace(
+            name=name)
+        print(f"policy {name}: {run_dir}")
+    out = Path(args.out) if args.out else (
+        policies[0][1] / "eval" if policies else Path("runs") / Path(args.config).stem / "eval")
+    render = not args.no_render and sweep.eval_setting(cfg, "render")
+    result = sweep.run_sweep(cfg, planners, time_planning=False if args.no_timing else None,
+                             keep_pictures=render)
+    command = "python eval.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
+    paths = sweep.write_outputs(result, out, cfg, render=render, gif=not args.no_gif,
+                                command=command)
+    print(result.table())
+    print(f"results: {out}/ ({', '.join(sorted(p.name for p in paths.values()))})")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""Non-learning planners with the same interface as the learned policy.
+
+A planner is a pair of pure functions: `init(n_robots) -> memory` and
+`act(key, memory, obs, state) -> (memory, actions)`, where `obs` is the team's observation
+(leading robot axis N), `state` the `EnvState` (only privileged planners such as the oracle
+may read it) and `actions` (N,) are candidate indices. Stateless planners keep a dummy
+memory so that every planner runs through the same episode code.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxmripp import comms, geometry, gp, sensing
+from jaxmripp.observation import FEATURES, Observation
+
+UTILITY_MEAN = FEATURES.index("utility_mean")
+UTILITY_STD = FEATURES.index("utility_std")
+COMM_MEAN = FEATURES.index("comm_mean")
+
+
+class Planner(NamedTuple):
+    name: str
+    init: Callable[[int], jax.Array]
+    act: Callable[..., tuple[jax.Array, jax.Array]]  # (key, memory, obs, state)
+
+
+def _no_memory(n_robots: int) -> jax.Array:
+    return jnp.zeros((n_robots, 1), jnp.float32)
+
+
+def masked_argmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
+    """Argmax over feasible entries of the last axis; 0 where nothing is feasible."""
+    return jnp.argmax(jnp.where(mask, scores, -jnp.inf), axis=-1)
+
+
+def random_planner() -> Planner:
+    """Uniform over each robot's feasible candidates."""
+
+    def act(key, memory, obs, state=None):
+        noise = jax.random.uniform(key, obs.mask.shape)
+        return memory, masked_argmax(noise, obs.mask)
+
+    return Planner("random", _no_memory, act)
+
+
+def greedy_scores(obs: Observation, kappa: float, lam: float) -> jax.Array:
+    f = obs.features
+    return f[..., UTILITY_MEAN] + kappa * f[..., UTILITY_STD] - lam * f[..., COMM_MEAN]
+
+
+def greedy_planner(kappa: float = 1.0, lam: float = 0.0, name: str = "greedy") -> Planner:
+    """Maximises utility mean + kappa * std - lam * communication mean (UCB-style).
+
+    Ties (common early on, when every prediction is the prior) are broken at random
+    rather than by candidate order, which would favour turning in place.
+    """
+
+    def act(key, memory, obs, state=None):
+        jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
+        return memory, masked_argmax(greedy_scores(obs, kappa, lam) + jitter, obs.mask)
+
+    return Planner(name, _no_memory, act)
+
+
+# ---------------------------------------------------------------------------------------
+# Planners that read more than the observation. They are built per environment shape
+# (`EnvParams` gives the radio range, d_c, GP and sensor settings) and read `state`:
+# `coordinated_planner` only what a robot knows anyway (its peers' positions within radio
+# range), `oracle_planner` the ground truth (an upper reference, not a fair competitor).
+
+
+def _sequential(choose: Callable, carry, n_robots: int) -> jax.Array:
+    """Robots choose one after another (index order); returns actions (N,)."""
+    _, actions = jax.lax.scan(choose, carry, jnp.arange(n_robots))
+    return actions
+
+
+def coordinated_planner(params, kappa: float = 1.0, lam: float = 1.0, mu: float = 1.0,
+                        name: str = "coordinated") -> Planner:
+    """Greedy with sequential allocation among robots that hear each other.
+
+    Score = utility mean + kappa * std - lam * communication-GP mean (regions peers
+    explored) - mu * max correlation (the GP kernel / variance) with the poses that peers
+    within radio range already chose this step. Robots choose in index order; robot i sees
+    the choices of robots j < i it can hear, and never picks a position within the
+    collision distance d_c of one of them unless nothing else is feasible.
+    """
+    gp_cfg, d_c, rho = params.gp, params.radio.collision_distance, params.radio.range
+
+    def act(key, memory, obs, state):
+        n = obs.mask.shape[0]
+        jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
+        base = greedy_scores(obs, kappa, lam) + jitter
+        poses = geometry.pose(state.candidates.position, state.candidates.heading)  # (N, L, 4)
+        hears = comms.contacts(state.position, rho)
+
+        def choose(carry, i):
+            chosen_pose, chosen = carry
+            known = chosen & hears[i]
+            corr = gp.kernel(poses[i], chosen_pose, gp_cfg) / gp_cfg.variance  # (L, N)
+            corr = jnp.max(jnp.where(known[None], corr, 0.0), axis=-1)
+            gap = jnp.linalg.norm(poses[i, :, None, :3] - chosen_pose[None, :, :3], axis=-1)
+            near = jnp.any(known[None] & (gap <= d_c), axis=-1)
+            allowed = obs.mask[i] & ~near
+            allowed = jnp.where(jnp.any(allowed), allowed, obs.mask[i])
+            a = masked_argmax(base[i] - mu * corr, allowed)
+            chosen_pose = chosen_pose.at[i].set(poses[i, a])
+            chosen = chosen.at[i].set(jnp.any(obs.mask[i]))
+            return (chosen_pose, chosen), a
+
+        init = (jnp.zeros((n, 4), jnp.float32), jnp.zeros((n,), bool))
+        return memory, _sequential(choose, init, n)
+
+    return Planner(name, _no_memory, act)
+
+
+def oracle_planner(params, name: str = "oracle") -> Planner:
+    """Sequential greedy on the ground truth: an upper reference, not a fair planner.
+
+    Each robot casts its sensor (`sensing.cast` on the true world) from every candidate
+    and takes the one that reveals the most windows nobody has discovered yet and that no
+    robot before it (index order) will see from its chosen pose this step. Ties (e.g.
+    nothing in view) are broken by the greedy utility score, squashed to stay below one
+    window.
+    """
+    def act(key, memory, obs, state):
+        n = obs.mask.shape[0]
+        c = state.candidates
+        jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
+        tie = 0.1 * jnp.tanh(greedy_scores(obs, 1.0, 0.0)) + jitter  # |tie| < 0.5
+        cast = jax.vmap(lambda p, h: sensing.cast(state.world, p, h, params.sensor,
+                                                  params.size).seen)
+
+        def choose(covered, i):
+            seen = cast(c.position[i], c.heading[i])  # (L, T)
+            fresh = jnp.sum(seen & ~covered[None], axis=-1).astype(jnp.float32)
+            a = masked_argmax(fresh + tie[i], obs.mask[i])
+            covered = covered | (seen[a] & jnp.any(obs.mask[i]))
+            return covered, a
+
+        return memory, _sequential(choose, state.discovered, n)
+
+    return Planner(name, _no_memory, act)

@@ -1,0 +1,63 @@
+"""Orbax checkpoints of the training state: the last k chunks and the best one."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import jax
+import orbax.checkpoint as ocp
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint is missing, corrupt or of another shape than this config builds."""
+
+
+class Checkpoints:
+    """`last/` keeps the newest `keep` chunks, `best/` the one with the highest score."""
+
+    def __init__(self, directory: str | Path, keep: int):
+        directory = Path(directory).absolute()
+        sync = dict(enable_async_checkpointing=False, create=True)
+        self.last = ocp.CheckpointManager(
+            directory / "last", options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync))
+        self.best = ocp.CheckpointManager(
+            directory / "best", options=ocp.CheckpointManagerOptions(
+                max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync))
+
+    def save(self, step: int, state: Any, score: float) -> None:
+        self.last.save(step, args=ocp.args.StandardSave(state))
+        self.best.save(step, args=ocp.args.StandardSave(state), metrics={"score": float(score)})
+        self.last.wait_until_finished()
+        self.best.wait_until_finished()
+
+    def latest_step(self) -> int | None:
+        return self.last.latest_step()
+
+    def restore(self, template: Any, best: bool = False) -> Any:
+        manager = self.best if best else self.last
+        step = manager.best_step() if best else manager.latest_step()
+        if step is None:
+            raise CheckpointError(f"{manager.directory}: no checkpoint to restore")
+        return restore_checked(manager, step, template)
+
+    def close(self) -> None:
+        self.last.close()
+        self.best.close()
+
+
+def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any) -> Any:
+    """Restores into `template`'s structure, turning shape mismatches into one clear line."""
+    try:
+        restored = manager.restore(step, args=ocp.args.StandardRestore(template))
+    except Exception as err:  # orbax raises many types; the caller needs one message
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(
+            f"{manager.directory}/{step}: cannot restore into this config's shapes "
+            f"({first[:300]})") from None
+    want = jax.tree.map(lambda x: (x.shape, x.dtype), template)
+    got = jax.tree.map(lambda x: (x.shape, x.dtype), restored)
+    if want != got:
+        raise CheckpointError(f"{manager.directory}/{step}: checkpoint shapes differ from "
+                              "this config (was it written with another policy width?)")
+    return restored

@@ -1,0 +1,78 @@
+"""Whole episodes with any planner: one `lax.scan` over T_max steps, vmap-able over keys."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxmripp import env as envmod
+from jaxmripp.baselines import Planner
+from jaxmripp.env import EnvParams
+
+
+@struct.dataclass
+class Trajectory:
+    """T = T_max steps after the reset; N robots."""
+
+    position: jax.Array  # (T + 1, N, 3) including the start
+    heading: jax.Array  # (T + 1, N)
+    active: jax.Array  # (T, N) bool: the robot acted at this step
+    discovered_fraction: jax.Array  # (T + 1,)
+    budget_used: jax.Array  # (T + 1,) fraction of the team budget spent
+    reward: jax.Array  # (T, N)
+
+
+@struct.dataclass
+class EpisodeResult:
+    discovered_fraction: jax.Array  # ()
+    steps: jax.Array  # () steps until every robot was done
+    obstacle_collisions: jax.Array  # ()
+    robot_collisions: jax.Array  # ()
+    distance: jax.Array  # () team path length
+    contacts: jax.Array  # ()
+    final_state: envmod.EnvState
+    trajectory: Trajectory
+
+
+def run(key: jax.Array, params: EnvParams, planner: Planner) -> EpisodeResult:
+    """Resets a world from `key` and lets `planner` act until T_max steps have passed."""
+    key_reset, key_run = jax.random.split(key)
+    obs, state = envmod.reset(key_reset, params)
+    memory = planner.init(params.n_robots)
+    team_budget = state.budget_initial * params.n_robots
+
+    def spent(s):
+        return 1.0 - s.budget_left.sum() / team_budget
+
+    def body(carry, key):
+        obs, state, memory = carry
+        key_act, key_step = jax.random.split(key)
+        memory, actions = planner.act(key_act, memory, obs, state)
+        obs, state, reward, _, info = envmod.step(key_step, state, actions, params)
+        out = (state.position, state.heading, info.acted, info.discovered_fraction,
+               spent(state), reward)
+        return (obs, state, memory), out
+
+    keys = jax.random.split(key_run, params.max_steps)
+    (_, final, _), (pos, head, acted, frac, used, reward) = jax.lax.scan(
+        body, (obs, state, memory), keys)
+    trajectory = Trajectory(
+        position=jnp.concatenate([state.position[None], pos]),
+        heading=jnp.concatenate([state.heading[None], head]),
+        active=acted,
+        discovered_fraction=jnp.concatenate([envmod.discovered_fraction(state)[None], frac]),
+        budget_used=jnp.concatenate([spent(state)[None], used]),
+        reward=reward,
+    )
+    m = final.metrics
+    return EpisodeResult(
+        discovered_fraction=envmod.discovered_fraction(final),
+        steps=jnp.any(acted, axis=1).sum(),
+        obstacle_collisions=m.obstacle_collisions.sum(),
+        robot_collisions=m.robot_collisions.sum(),
+        distance=m.distance.sum(),
+        contacts=m.contacts,
+        final_state=final,
+        trajectory=trajectory,
+    )

@@ -1,0 +1,125 @@
+"""Plots of evaluation sweeps: discovery curves, team-size scaling, episode pictures, GIFs.
+
+Inputs are `evaluate.ShapeRun`s (NumPy arrays); nothing here imports JAX.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402
+import numpy as np  # noqa: E402
+from matplotlib import animation  # noqa: E402
+
+from jaxmripp import viz  # noqa: E402
+
+
+def _save(fig, path) -> Path:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def discovery_vs_budget(path, runs: dict, title: str = "", points: int = 41) -> Path:
+    """% targets discovered against the fraction of the team budget used: mean and a
+    +-1 std band per planner. runs: {planner: ShapeRun} of one shape."""
+    fig, ax = plt.subplots(figsize=(6, 4))
+    grid = np.linspace(0.0, 1.0, points)
+    for name, r in runs.items():
+        # Budget use is non-decreasing; after the last move a curve stays flat.
+        curves = np.stack([np.interp(grid, b, d) for b, d in
+                           zip(r.curve_budget, r.curve_discovered)])
+        mean, std = curves.mean(axis=0), curves.std(axis=0)
+        line, = ax.plot(grid, mean, label=name)
+        ax.fill_between(grid, mean - std, mean + std, alpha=0.15, color=line.get_color())
+    ax.set(xlabel="fraction of team budget used", ylabel="% targets discovered",
+           title=title or None)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    return _save(fig, path)
+
+
+def discovery_vs_team_size(path, runs: list) -> Path:
+    """Mean +- std % discovered against N, one panel per world size G, one line per
+    planner (and radio range / budget when the sweep has several)."""
+    sizes = sorted({r.shape.size for r in runs})
+    fig, axes = plt.subplots(1, len(sizes), figsize=(4.5 * len(sizes), 3.8), squeeze=False)
+    several = len({(r.shape.radio_range, r.shape.budget) for r in runs}) > 1
+    for ax, size in zip(axes[0], sizes):
+        lines: dict = {}
+        for r in runs:
+            if r.shape.size != size:
+                continue
+            label = r.planner + (f" (rho {r.shape.radio_range:g}, B {r.shape.budget:g})"
+                                 if several else "")
+            lines.setdefault(label, []).append((r.shape.n_robots, r.discovered.mean(),
+                                                r.discovered.std(ddof=1) if len(r.discovered) > 1 else 0.0))
+        for label, pts in lines.items():
+            n, mean, std = map(np.asarray, zip(*sorted(pts)))
+            ax.errorbar(n, mean, yerr=std, marker="o", capsize=3, label=label)
+        ax.set(xlabel="robots N", ylabel="% targets discovered", title=f"G = {size}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    return _save(fig, path)
+
+
+def _episode(run, index: int):
+    s = run.snapshot
+    return (s.height[index], s.target_voxel[index], s.target_valid[index], s.found_at[index],
+            run.positions[index], run.active[index])
+
+
+def episode_picture(path, run, index: int = 0) -> Path:
+    """viz.render_episode of one episode of a ShapeRun (world index // trials)."""
+    height, voxel, valid, found_at, positions, active = _episode(run, index)
+    title = (f"{run.planner}: {run.discovered[index]:.1f}% found "
+             f"({run.shape.label()}, world {index // run.trials})")
+    return viz.render_episode(path, height, voxel, valid, found_at >= 0, positions, active,
+                              run.shape.radio_range, title)
+
+
+def episode_gif(path, run, index: int = 0, fps: int = 3) -> Path:
+    """An animated GIF of one episode: paths growing step by step, windows turning
+    green when discovered (matplotlib.animation + PillowWriter)."""
+    height, voxel, valid, found_at, positions, active = _episode(run, index)
+    size = height.shape[0]
+    moving = np.nonzero(active.any(axis=1))[0]
+    last = int(moving[-1]) + 1 if len(moving) else 0  # steps until everybody stopped
+    fig = plt.figure(figsize=(6, 5.5))
+    ax = fig.add_subplot(projection="3d")
+    xs, ys = np.nonzero(height)
+    if len(xs):
+        ax.bar3d(xs / size, ys / size, 0, 1 / size, 1 / size, height[xs, ys] / size,
+                 color="0.75", alpha=0.3, shade=True, linewidth=0)
+    centres = (voxel[valid] + 0.5) / size
+    found_at = found_at[valid]
+    missed = ax.scatter(*centres.T, s=5, c="tab:red", depthshade=False)
+    found = ax.scatter(*centres[:0].T, s=7, c="tab:green", depthshade=False)
+    n = positions.shape[1]
+    lines = [ax.plot([], [], [], "-o", markersize=2.5, linewidth=1.5,
+                     color=viz.ROBOT_COLOURS[r % len(viz.ROBOT_COLOURS)])[0] for r in range(n)]
+    ax.set(xlim=(0, 1), ylim=(0, 1), zlim=(0, 1), xlabel="x", ylabel="y", zlabel="z")
+
+    def frame(k):
+        seen = (found_at >= 0) & (found_at <= k)
+        found._offsets3d = tuple(centres[seen].T)
+        missed._offsets3d = tuple(centres[~seen].T)
+        for r, line in enumerate(lines):
+            keep = np.concatenate([[True], active[:k, r]])
+            p = positions[: k + 1][keep, r]
+            line.set_data_3d(p[:, 0], p[:, 1], p[:, 2])
+        ax.set_title(f"{run.planner}, step {k}: {100 * seen.sum() / max(len(seen), 1):.1f}% found")
+        return [found, missed, *lines]
+
+    anim = animation.FuncAnimation(fig, frame, frames=last + 1, blit=False)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(path, writer=animation.PillowWriter(fps=fps))
+    plt.close(fig)
+    return path

@@ -1,0 +1,55 @@
+"""The main job behind `make train`: train, then evaluate against baselines, then plot."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Callable
+
+import jax
+import numpy as np
+
+from jaxmripp import baselines, episode, evaluate, viz
+from jaxmripp import train as trainmod
+from jaxmripp.checkpoint import Checkpoints
+from jaxmripp.config import Config
+
+
+def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
+    """Restores a run's checkpoint into a deterministic policy planner."""
+    trainer = trainmod.Trainer.build(cfg)
+    checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
+    state = checkpoints.restore(trainer.init(), best=best)
+    checkpoints.close()
+    return evaluate.policy_planner(trainer.network, state.params, cfg.policy.width)
+
+
+def baseline_planners(cfg: Config) -> list[baselines.Planner]:
+    return [baselines.greedy_planner(cfg.eval.greedy_kappa, cfg.eval.greedy_lambda),
+            baselines.random_planner()]
+
+
+def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print) -> dict:
+    """Learning curve, held-out comparison table and an episode picture in run_dir."""
+    records = trainmod.read_metrics(run_dir)
+    if records:
+        viz.learning_curve(run_dir / "learning_curve.png", records,
+                           keys=("discovered", "return", "entropy"))
+    planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg)
+    params = evaluate.eval_params(cfg, cfg.train.eval_budget, layout="random")
+    keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
+    results = evaluate.compare(planners, params, keys)
+    title = (f"{cfg.train.eval_worlds} held-out random-layout worlds, N = {params.n_robots}, "
+             f"B = {cfg.train.eval_budget}, rho = {params.radio.range}")
+    table = evaluate.summary_table(results, title)
+    (run_dir / "eval_table.md").write_text(table + "\n")
+    (run_dir / "eval_summary.json").write_text(json.dumps(
+        {name: {"mean": float(r["discovered"].mean()), "std": float(r["discovered"].std(ddof=1)),
+                "ms_per_robot_step": r["ms_per_robot_step"]} for name, r in results.items()},
+        indent=2))
+    viz.discovery_curves(run_dir / "discovered_vs_budget.png", results)
+    shown = jax.jit(lambda k: episode.run(k, params, planners[0]))(keys[0])
+    viz.render_result(run_dir / "episode_policy.png", shown, params.radio.range,
+                      title=f"trained policy: {100 * float(shown.discovered_fraction):.1f}% found")
+    log(table)
+    return {name: float(np.mean(r["discovered"])) for name, r in results.items()}

@@ -1,0 +1,194 @@
+"""PPO with parameter sharing: rollouts, GAE and the clipped update, all jit-able.
+
+Every robot of every environment is a sample of one shared policy (CTDE). Shapes: T
+rollout steps, E environments, N robots, W memory width. The recurrent memory is stored
+with each transition and fed back unchanged in the update (one-step truncated
+backpropagation through time), so minibatches of whole environments stay consistent.
+"""
+
+from __future__ import annotations
+
+import chex
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from jaxmripp import env as envmod
+from jaxmripp.config import Config, PPOConfig
+from jaxmripp.env import EnvParams
+from jaxmripp.observation import Observation
+from jaxmripp.policy import ActorCritic, distribution, initial_memory
+
+
+@struct.dataclass
+class Transition:
+    """Leading axes (T, E, N)."""
+
+    obs: Observation
+    memory: jax.Array  # (..., W) memory the policy was given
+    action: jax.Array  # (...,) int32
+    log_prob: jax.Array  # (...,)
+    value: jax.Array  # (...,)
+    reward: jax.Array  # (...,)
+    terminal: jax.Array  # (...,) bool: the robot's episode ended with this step
+    active: jax.Array  # (...,) bool: the robot could act (done robots give no samples)
+
+
+@struct.dataclass
+class Runner:
+    """What a rollout carries from one update to the next within a chunk."""
+
+    env_state: envmod.EnvState  # (E, ...)
+    obs: Observation  # (E, N, ...)
+    memory: jax.Array  # (E, N, W)
+
+
+@struct.dataclass
+class RolloutStats:
+    episodes: jax.Array  # () episodes finished
+    discovered: jax.Array  # () summed final discovered fraction of finished episodes
+    episode_return: jax.Array  # () summed per-robot return of finished episodes
+    reward_parts: jax.Array  # (3,) mean r_e, r_u, r_c per active sample
+
+
+def make_network(cfg: Config) -> ActorCritic:
+    return ActorCritic(cfg.policy, central_critic=cfg.ppo.algo == "mappo")
+
+
+def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
+    """Adam with the paper's staircase decay (x lr_decay every lr_decay_every steps)."""
+    schedule = optax.exponential_decay(cfg.learning_rate, cfg.lr_decay_every, cfg.lr_decay,
+                                       staircase=True)
+    return optax.chain(optax.clip_by_global_norm(cfg.max_grad_norm),
+                       optax.adam(schedule, eps=1e-5))
+
+
+def apply_batched(network: ActorCritic, params, memory, obs: Observation):
+    """Applies the single-robot network over any leading axes of memory / obs."""
+    lead = memory.shape[:-1]
+    flat = lambda x: x.reshape((-1, *x.shape[len(lead):]))
+    fn = jax.vmap(lambda m, o: network.apply(params, m, o))
+    new_memory, logits, value = fn(flat(memory), jax.tree.map(flat, obs))
+    unflat = lambda x: x.reshape((*lead, *x.shape[1:]))
+    return unflat(new_memory), unflat(logits), unflat(value)
+
+
+def start_runner(key, cfg: Config, params: EnvParams) -> Runner:
+    obs, state = jax.vmap(envmod.reset, in_axes=(0, None))(
+        jax.random.split(key, cfg.train.envs), params)
+    memory = jnp.broadcast_to(initial_memory(cfg.policy),
+                              (cfg.train.envs, params.n_robots, cfg.policy.width))
+    return Runner(state, obs, memory)
+
+
+def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
+            params: EnvParams):
+    """Steps every environment `rollout_steps` times; returns (runner, transitions, stats)."""
+    envs = cfg.train.envs
+    key_pool, key_steps = jax.random.split(key)
+    reset_obs, reset_state = jax.vmap(envmod.reset, in_axes=(0, None))(
+        jax.random.split(key_pool, envs), params)
+    step = jax.vmap(envmod.step_auto_reset, in_axes=(0, 0, 0, None, 0, 0))
+
+    def body(carry, key):
+        runner, ret = carry
+        key_act, key_env = jax.random.split(key)
+        memory, logits, value = apply_batched(network, net_params, runner.memory, runner.obs)
+        dist = distribution(logits, runner.obs.mask)
+        action = dist.sample(seed=key_act)
+        log_prob = dist.log_prob(action)
+        active = jnp.any(runner.obs.mask, axis=-1)
+        obs, state, reward, done, info, ended = step(
+            jax.random.split(key_env, envs), runner.env_state, action, params, reset_obs,
+            reset_state)
+        terminal = (done & active) | ended[:, None]
+        memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
+        ret = ret + reward
+        final_discovered = info.discovered_fraction
+        stats = (ended.sum(), (final_discovered * ended).sum(),
+                 (ret.mean(axis=1) * ended).sum(),
+                 jnp.stack([info.reward_exploration, info.reward_discovery,
+                            info.reward_communication]).reshape(3, -1),
+                 info.acted.reshape(-1))
+        ret = jnp.where(ended[:, None], 0.0, ret)
+        transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
+                                terminal, active)
+        return (Runner(state, obs, memory), ret), (transition, stats)
+
+    ret0 = jnp.zeros((envs, params.n_robots))
+    (runner, _), (transitions, stats) = jax.lax.scan(
+        body, (runner, ret0), jax.random.split(key_steps, cfg.train.rollout_steps))
+    ended, discovered, returns, parts, acted = stats
+    weights = acted[:, None, :]
+    summary = RolloutStats(
+        episodes=ended.sum(),
+        discovered=discovered.sum(),
+        episode_return=returns.sum(),
+        reward_parts=(parts * weights).sum(axis=(0, 2)) / jnp.maximum(weights.sum(), 1),
+    )
+    return runner, transitions, summary
+
+
+def gae(transitions: Transition, last_value, discount: float, lam: float):
+    """Generalised advantage estimates (T, E, N) and value targets, cut at terminals."""
+
+    def body(carry, t):
+        advantage, next_value = carry
+        keep = 1.0 - t.terminal.astype(jnp.float32)
+        delta = t.reward + discount * next_value * keep - t.value
+        advantage = delta + discount * lam * keep * advantage
+        return (advantage, t.value), advantage
+
+    _, advantages = jax.lax.scan(body, (jnp.zeros_like(last_value), last_value), transitions,
+                                 reverse=True)
+    return advantages, advantages + transitions.value
+
+
+def loss_fn(net_params, network, batch: Transition, advantages, targets, cfg: PPOConfig):
+    _, logits, value = apply_batched(network, net_params, batch.memory, batch.obs)
+    dist = distribution(logits, batch.obs.mask)
+    log_prob = dist.log_prob(batch.action)
+    weight = batch.active.astype(jnp.float32)
+    count = jnp.maximum(weight.sum(), 1.0)
+    mean = lambda x: (x * weight).sum() / count
+    adv_mean = mean(advantages)
+    adv_std = jnp.sqrt(mean((advantages - adv_mean) ** 2)) + 1e-8
+    adv = (advantages - adv_mean) / adv_std
+    ratio = jnp.exp(log_prob - batch.log_prob)
+    clipped = jnp.clip(ratio, 1.0 - cfg.clip, 1.0 + cfg.clip)
+    policy_loss = -mean(jnp.minimum(ratio * adv, clipped * adv))
+    value_clipped = batch.value + jnp.clip(value - batch.value, -cfg.clip, cfg.clip)
+    value_loss = 0.5 * mean(jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2))
+    entropy = mean(dist.entropy())
+    total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
+    approx_kl = mean((ratio - 1.0) - jnp.log(ratio))
+    return total, dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
+                       approx_kl=approx_kl)
+
+
+def update(key, net_params, opt_state, network, optimizer, transitions: Transition,
+           last_value, cfg: PPOConfig):
+    """Epochs x minibatches of whole environments; returns params, opt_state, losses."""
+    advantages, targets = gae(transitions, last_value, cfg.discount, cfg.gae_lambda)
+    envs = transitions.reward.shape[1]
+    chex.assert_equal(envs % cfg.minibatches, 0)
+    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+
+    def epoch(carry, key):
+        net_params, opt_state = carry
+        order = jax.random.permutation(key, envs).reshape(cfg.minibatches, -1)
+
+        def minibatch(carry, index):
+            net_params, opt_state = carry
+            take = lambda x: x[:, index]
+            (_, aux), grads = grad_fn(net_params, network, jax.tree.map(take, transitions),
+                                      take(advantages), take(targets), cfg)
+            updates, opt_state = optimizer.update(grads, opt_state, net_params)
+            return (optax.apply_updates(net_params, updates), opt_state), aux
+
+        return jax.lax.scan(minibatch, (net_params, opt_state), order)
+
+    (net_params, opt_state), aux = jax.lax.scan(
+        epoch, (net_params, opt_state), jax.random.split(key, cfg.epochs))
+    return net_params, opt_state, jax.tree.map(jnp.mean, aux)

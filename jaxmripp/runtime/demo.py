@@ -1,0 +1,146 @@
+"""A team flown by the onboard runtime: every decision comes from `OnboardPlanner`.
+
+    python -m jaxmripp.runtime.demo                         # greedy planners, default config
+    python -m jaxmripp.runtime.demo --export runs/x/export  # the exported policy
+
+The world and the ground-truth camera come from the JAX side (`jaxmripp.world`,
+`jaxmripp.sensing.cast`); this module is the only one in `jaxmripp.runtime` that imports
+jax. Each round every robot senses, broadcasts its message to the robots within radio range
+(JSON bytes, as on a real radio), reads theirs and decides; the demo then flies each robot
+along a straight line, stopping before a building (as the env does), and prints the
+progress. It ends when every robot hovers or after the episode's step limit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxmripp.runtime import weights as fmt
+from jaxmripp.runtime.mapping import segment_points, segment_samples, voxel_of
+from jaxmripp.runtime.planner import OnboardPlanner
+
+HEADING_NAMES = ("+x", "+y", "-x", "-y")
+
+
+def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell_hi: float):
+    """jaxmripp.env._fly in NumPy: (stop position, blocked)."""
+    points = segment_points(start, end[None], segment_samples(size, shell_hi))[0]
+    voxel = voxel_of(points, size)
+    hit = voxel[:, 2] < height[voxel[:, 0], voxel[:, 1]]
+    if not hit.any():
+        return end, False
+    first = int(np.argmax(hit))
+    return (start if first == 0 else points[first - 1]), True
+
+
+def main(argv: list[str] | None = None) -> float:
+    parser = argparse.ArgumentParser(prog="python -m jaxmripp.runtime.demo", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--export", type=Path, default=None,
+                        help="export directory (python -m jaxmripp.export RUN_DIR); "
+                             "default: greedy planners")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="config for the world and, without --export, the planners")
+    parser.add_argument("--robots", type=int, default=None, help="team size (default: config)")
+    parser.add_argument("--budget", type=float, default=10.0, help="team budget B")
+    parser.add_argument("--size", type=int, default=None, help="world size G (default: config)")
+    parser.add_argument("--layout", default="random", choices=("grid", "random"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--kappa", type=float, default=None,
+                        help="greedy: weight of the utility std (default: eval.greedy_kappa)")
+    parser.add_argument("--lam", type=float, default=None,
+                        help="greedy: weight of the comm mean (default: eval.greedy_lambda)")
+    parser.add_argument("--quiet", action="store_true", help="only the final line")
+    args = parser.parse_args(argv)
+
+    import jax  # the simulated world only; planners below are NumPy
+
+    from jaxmripp import config as cfgmod
+    from jaxmripp import export as exportmod
+    from jaxmripp import sensing, world as worldmod
+
+    cfg = cfgmod.load(args.config)
+    if args.export is not None:
+        exported = fmt.load(args.export)
+        spec, policy = exported.spec, exported.policy
+    else:
+        spec, policy = fmt.RuntimeSpec.from_header(fmt.jsonable(exportmod.header(cfg))), None
+    size = args.size or spec.size
+    if size != spec.size:
+        spec = dataclasses.replace(spec, size=size)
+    n = args.robots or spec.team_size
+    world_cfg = dataclasses.replace(cfg.world, size=size, layout=args.layout,
+                                    targets=(cfg.world.targets[1],) * 2)
+    world = jax.jit(worldmod.generate, static_argnums=1)(jax.random.key(args.seed), world_cfg)
+    height = np.asarray(world.height)
+    valid = np.asarray(world.target_valid)
+    cast = jax.jit(jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None)),
+                   static_argnums=(3, 4))
+
+    per_robot = args.budget / n
+    steps = max(spec.max_steps, int(math.ceil(per_robot / spec.shell[0])) + 4)
+    kappa = cfg.eval.greedy_kappa if args.kappa is None else args.kappa
+    lam = cfg.eval.greedy_lambda if args.lam is None else args.lam
+    planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
+                               lam=lam, max_steps=steps, seed=args.seed * 1000 + i)
+                for i in range(n)]
+    position = np.tile(np.asarray(spec.start, np.float32), (n, 1))
+    heading = np.full(n, spec.start_heading, np.int32)
+    blocked = np.zeros(n, bool)
+    found = np.zeros(valid.shape, bool)
+    mode = planners[0].mode
+    if not args.quiet:
+        print(f"{n} robots, {mode} planners, G = {size}, {int(valid.sum())} windows, "
+              f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")
+    decide_seconds = []
+    for step in range(steps + 1):
+        seen = cast(world, position, heading, cfg.sensor, size)
+        voxels, values, seen = (np.asarray(x) for x in (seen.voxels, seen.values, seen.seen))
+        found |= seen.any(axis=0)
+        start = time.perf_counter()
+        for i, planner in enumerate(planners):
+            planner.sense(position[i], int(heading[i]), voxels[i], values[i],
+                          int(seen[i].sum()), blocked=bool(blocked[i]))
+        outbox = [planner.message() for planner in planners]
+        gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
+        for i, planner in enumerate(planners):
+            for j in range(n):
+                if j != i and gap[i, j] <= spec.radio_range:
+                    planner.receive(outbox[j])
+        decisions = [planner.decide() for planner in planners]
+        decide_seconds.append((time.perf_counter() - start) / n)
+        percent = 100.0 * found.sum() / max(valid.sum(), 1)
+        if not args.quiet:
+            moves = "  ".join(
+                f"r{i} " + ("hover" if d.hover else
+                            f"({d.position[0]:.2f},{d.position[1]:.2f},{d.position[2]:.2f}) "
+                            f"{HEADING_NAMES[d.heading]}")
+                for i, d in enumerate(decisions))
+            print(f"step {step:3d}  found {percent:5.1f}%  {moves}")
+        if all(d.hover for d in decisions):
+            if not args.quiet:
+                for i, d in enumerate(decisions):
+                    print(f"  r{i}: {d.reason}")
+            break
+        for i, d in enumerate(decisions):
+            blocked[i] = False
+            if not d.hover:
+                position[i], blocked[i] = fly(height, position[i], d.position, size, spec.shell[1])
+                heading[i] = d.heading
+    percent = 100.0 * found.sum() / max(valid.sum(), 1)
+    print(f"found {percent:.1f}% of {int(valid.sum())} windows in {step} steps "
+          f"(median {1e3 * float(np.median(decide_seconds)):.2f} ms per robot decision, "
+          f"budget left {sum(float(p.budget_left) for p in planners):.3f} of {args.budget:g})")
+    return percent
+
+
+if __name__ == "__main__":
+    main()
+    sys.exit(0)

@@ -1,0 +1,129 @@
+"""Radio messages between robots: plain, versioned, serialisable records (JSON bytes).
+
+A robot broadcasts what the paper's single-hop radio exchanges: its own visited waypoints
+(poses, in order, with the normalised number of windows seen from each) and its current
+position. Histories only grow, so a message carries them from some index `start` on and a
+receiver appends what it does not have yet.
+
+Wire format (UTF-8 JSON object, protocol version PROTOCOL_VERSION = 1):
+    {"type": "jaxmripp.waypoints", "protocol": 1, "sender": 2,
+     "position": [x, y, z], "heading": 1, "start": 0,
+     "poses": [[x, y, z, angle], ...], "utilities": [u, ...]}
+Floats are float32 values written as the shortest decimal that reads back to the same
+double, so a pose survives the round trip bit for bit. Receivers refuse newer protocols
+(`ProtocolVersionError`) and malformed records (`MessageError`), with one-line messages.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+
+from jaxmripp.runtime.errors import MessageError, ProtocolVersionError
+
+PROTOCOL_VERSION = 1
+MESSAGE_TYPE = "jaxmripp.waypoints"
+MAX_BYTES = 1 << 20  # a history of thousands of poses is still far below this
+
+
+@dataclasses.dataclass(frozen=True)
+class Message:
+    sender: int
+    position: np.ndarray  # (3,) float32 current position
+    heading: int  # current heading index
+    start: int  # index of poses[0] in the sender's history
+    poses: np.ndarray  # (K, 4) float32 history poses (x, y, z, heading angle)
+    utilities: np.ndarray  # (K,) float32 windows seen from each pose / utility_norm
+    protocol: int = PROTOCOL_VERSION
+
+    @property
+    def end(self) -> int:
+        """History length the message brings its receiver up to."""
+        return self.start + len(self.utilities)
+
+
+def _floats(values) -> list:
+    return [float(v) for v in np.asarray(values, np.float32).reshape(-1)]
+
+
+def encode(message: Message) -> bytes:
+    poses = np.asarray(message.poses, np.float32).reshape(-1, 4)
+    record = {
+        "type": MESSAGE_TYPE,
+        "protocol": int(message.protocol),
+        "sender": int(message.sender),
+        "position": _floats(message.position),
+        "heading": int(message.heading),
+        "start": int(message.start),
+        "poses": [_floats(p) for p in poses],
+        "utilities": _floats(message.utilities),
+    }
+    return json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
+
+
+def decode(data: bytes | str) -> Message:
+    """Parses and validates one message; raises MessageError / ProtocolVersionError."""
+    if isinstance(data, (bytes, bytearray, memoryview)):
+        if len(data) > MAX_BYTES:
+            raise MessageError(f"radio message of {len(data)} bytes exceeds {MAX_BYTES}")
+        try:
+            data = bytes(data).decode("utf-8")
+        except UnicodeDecodeError:
+            raise MessageError("radio message is not UTF-8 text") from None
+    if not isinstance(data, str):
+        raise MessageError(f"radio message must be bytes or str, got {type(data).__name__}")
+    try:
+        record = json.loads(data)
+    except json.JSONDecodeError as err:
+        raise MessageError(f"radio message is not valid JSON ({err.msg} at {err.pos})") from None
+    if not isinstance(record, dict) or record.get("type") != MESSAGE_TYPE:
+        raise MessageError(f"radio message is not a {MESSAGE_TYPE} record")
+    protocol = record.get("protocol")
+    if not _is_int(protocol) or protocol < 1:
+        raise MessageError(f"radio message has no valid protocol version ({protocol!r})")
+    sender = record.get("sender")
+    if protocol > PROTOCOL_VERSION:
+        raise ProtocolVersionError(
+            f"radio message from robot {sender!r} uses protocol {protocol}; this runtime "
+            f"speaks up to {PROTOCOL_VERSION} (update the runtime on this robot)")
+    if not _is_int(sender) or sender < 0:
+        raise MessageError(f"radio message has an invalid sender id ({sender!r})")
+    where = f"radio message from robot {sender}"
+    position = _vector(record.get("position"), 3, f"{where}: position")
+    heading = record.get("heading")
+    if not _is_int(heading) or not 0 <= heading < 4:
+        raise MessageError(f"{where}: heading {heading!r} is not in 0..3")
+    start = record.get("start")
+    if not _is_int(start) or start < 0:
+        raise MessageError(f"{where}: start {start!r} is not a non-negative integer")
+    raw_poses, raw_utilities = record.get("poses"), record.get("utilities")
+    if not isinstance(raw_poses, list) or not isinstance(raw_utilities, list) \
+            or len(raw_poses) != len(raw_utilities):
+        raise MessageError(f"{where}: poses and utilities must be lists of equal length")
+    poses = np.asarray([_vector(p, 4, f"{where}: pose {start + i}")
+                        for i, p in enumerate(raw_poses)], np.float32).reshape(-1, 4)
+    utilities = _vector(raw_utilities, len(raw_utilities), f"{where}: utilities")
+    if np.any(utilities < 0):
+        raise MessageError(f"{where}: utilities must be non-negative")
+    if not (np.all(inside(position)) and np.all(inside(poses[:, :3]))):
+        raise MessageError(f"{where}: a position lies outside the unit cube")
+    return Message(sender, position, heading, start, poses, utilities, protocol)
+
+
+def inside(positions: np.ndarray) -> np.ndarray:
+    return np.all((positions >= 0.0) & (positions <= 1.0), axis=-1)
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def _vector(value, length: int, name: str) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != length or not all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+            for v in value):
+        raise MessageError(f"{name} must be a list of {length} finite numbers")
+    return np.asarray(value, np.float32)

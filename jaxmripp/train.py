@@ -1,0 +1,164 @@
+"""The training run: a Python loop over chunks of jitted PPO updates.
+
+A chunk (train.updates_per_chunk updates) is one compiled call. Environments restart at
+every chunk boundary, so a checkpoint needs only the network, the optimiser state, the
+seed key and the update counter, and a resumed run repeats an uninterrupted one exactly.
+Every random draw is keyed by `fold_in(seed key, update)`.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from jaxmripp import config as cfgmod
+from jaxmripp import env as envmod
+from jaxmripp import ppo
+from jaxmripp.checkpoint import Checkpoints
+from jaxmripp.config import Config
+from jaxmripp.env import EnvParams
+from jaxmripp.policy import initial_memory
+
+
+@struct.dataclass
+class TrainState:
+    params: Any
+    opt_state: Any
+    key: jax.Array  # (2,) uint32 seed key; never advanced, folded with `update`
+    update: jax.Array  # () int32 updates done
+
+
+@dataclass
+class Trainer:
+    """Everything static about a run: config, env params, network, optimiser, chunk fn."""
+
+    cfg: Config
+    env_params: EnvParams
+    network: Any
+    optimizer: Any
+    chunk: Callable[[TrainState], tuple[TrainState, dict]]
+
+    @classmethod
+    def build(cls, cfg: Config) -> "Trainer":
+        env_params = EnvParams.from_config(cfg)
+        network = ppo.make_network(cfg)
+        optimizer = ppo.make_optimizer(cfg.ppo)
+        return cls(cfg, env_params, network, optimizer,
+                   jax.jit(_chunk_fn(cfg, env_params, network, optimizer), donate_argnums=0))
+
+    def init(self) -> TrainState:
+        key = jax.random.PRNGKey(self.cfg.train.seed)
+        obs, _ = envmod.reset(jax.random.fold_in(key, -1 & 0x7FFFFFFF), self.env_params)
+        one_robot = jax.tree.map(lambda x: x[0], obs)
+        params = self.network.init(jax.random.fold_in(key, 1 << 30),
+                                   initial_memory(self.cfg.policy), one_robot)
+        return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32))
+
+
+def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):
+    def one_update(carry, _):
+        state, runner = carry
+        key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
+        runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
+                                                 cfg, env_params)
+        _, _, last_value = ppo.apply_batched(network, state.params, runner.memory, runner.obs)
+        params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
+                                               network, optimizer, transitions, last_value,
+                                               cfg.ppo)
+        active = transitions.active.astype(jnp.float32)
+        metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
+                       return_sum=stats.episode_return, reward_parts=stats.reward_parts,
+                       active_samples=active.sum())
+        return (TrainState(params, opt_state, state.key, state.update + 1), runner), metrics
+
+    def chunk(state: TrainState):
+        key_start = jax.random.fold_in(jax.random.fold_in(state.key, state.update), 1 << 29)
+        runner = ppo.start_runner(key_start, cfg, env_params)
+        (state, _), metrics = jax.lax.scan(one_update, (state, runner), None,
+                                           length=cfg.train.updates_per_chunk)
+        return state, metrics
+
+    return chunk
+
+
+def summarise(metrics: dict, cfg: Config) -> dict:
+    """Per-chunk means of the stacked per-update metrics (host side)."""
+    m = jax.tree.map(np.asarray, metrics)
+    episodes = max(int(m["episodes"].sum()), 1)
+    parts = m["reward_parts"].mean(axis=0)
+    return {
+        "discovered": float(m["discovered_sum"].sum() / episodes),
+        "return": float(m["return_sum"].sum() / episodes),
+        "episodes": int(m["episodes"].sum()),
+        "policy_loss": float(m["policy_loss"].mean()),
+        "value_loss": float(m["value_loss"].mean()),
+        "entropy": float(m["entropy"].mean()),
+        "approx_kl": float(m["approx_kl"].mean()),
+        "r_exploration": float(parts[0]),
+        "r_discovery": float(parts[1]),
+        "r_communication": float(parts[2]),
+    }
+
+
+def fresh_run_dir(root: Path, name: str) -> Path:
+    """runs/<name>, or runs/<name>-2, -3, ... so an earlier run is never overwritten."""
+    candidate, n = root / name, 1
+    while candidate.exists():
+        n += 1
+        candidate = root / f"{name}-{n}"
+    return candidate
+
+
+def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: int | None = None,
+          log: Callable[[str], None] = print) -> TrainState:
+    """Trains into run_dir (config.yaml, metrics.jsonl, checkpoints/); returns the state."""
+    run_dir.mkdir(parents=True, exist_ok=True)
+    trainer = Trainer.build(cfg)
+    checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
+    state = trainer.init()
+    if resume and checkpoints.latest_step() is not None:
+        state = checkpoints.restore(state)
+        log(f"resumed {run_dir} at update {int(state.update)}")
+    else:
+        (run_dir / "config.yaml").write_text(cfgmod.to_yaml(cfg))
+        (run_dir / "metrics.jsonl").write_text("")
+    samples_per_update = cfg.train.envs * cfg.train.rollout_steps * cfg.robots.count
+    total_chunks = cfg.train.updates // cfg.train.updates_per_chunk
+    done_chunks = int(state.update) // cfg.train.updates_per_chunk
+    for index in range(done_chunks, total_chunks):
+        if stop_after_chunks is not None and index - done_chunks >= stop_after_chunks:
+            log(f"stopped after {stop_after_chunks} chunk(s) as asked; --resume continues")
+            break
+        start = time.perf_counter()
+        state, metrics = trainer.chunk(state)
+        record = summarise(metrics, cfg)
+        seconds = time.perf_counter() - start
+        updates = int(state.update)
+        record.update(update=updates, env_steps=updates * samples_per_update,
+                      seconds=round(seconds, 2),
+                      agent_steps_per_s=round(cfg.train.updates_per_chunk * samples_per_update
+                                              / seconds, 1))
+        with open(run_dir / "metrics.jsonl", "a") as fh:
+            fh.write(json.dumps(record) + "\n")
+        checkpoints.save(updates, state, record["discovered"])
+        log(f"chunk {index + 1}/{total_chunks}  updates {updates}  "
+            f"agent-steps {record['env_steps']:,}  {record['agent_steps_per_s']:,.0f}/s  "
+            f"discovered {100 * record['discovered']:.1f}%  return {record['return']:.2f}  "
+            f"entropy {record['entropy']:.2f}  value-loss {record['value_loss']:.3f}")
+    checkpoints.close()
+    return state
+
+
+def read_metrics(run_dir: Path) -> list[dict]:
+    path = run_dir / "metrics.jsonl"
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]

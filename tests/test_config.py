@@ -1,0 +1,82 @@
+import dataclasses
+import math
+
+import pytest
+import yaml
+
+from jaxmripp import config as cfgmod
+from jaxmripp.config import Config, ConfigError
+
+PRESETS = ["default", "paper", "smoke"]
+
+
+@pytest.mark.parametrize("name", PRESETS)
+def test_presets_load_and_round_trip(name):
+    cfg = cfgmod.load(f"configs/{name}.yaml")
+    again = cfgmod.from_dict(yaml.safe_load(cfgmod.to_yaml(cfg)))
+    assert again == cfg
+    hash(cfg)  # usable as a static jit argument
+
+
+def test_infinite_radio_range_round_trips():
+    cfg = cfgmod.load(None, ["radio.range=.inf", "eval.radio_ranges=[.inf, 0.1]"])
+    assert cfg.radio.range == math.inf
+    assert cfgmod.from_dict(yaml.safe_load(cfgmod.to_yaml(cfg))) == cfg
+
+
+def test_overrides_apply_on_top_of_a_preset():
+    cfg = cfgmod.load("configs/default.yaml", ["world.size=64", "robots.count=4"])
+    assert cfg.world.size == 64 and cfg.robots.count == 4
+    assert cfg.robots.budget == (7.0, 9.0)  # from the preset, untouched
+
+
+def test_paper_preset_inherits_and_changes_the_reference_bits():
+    paper = cfgmod.load("configs/paper.yaml")
+    assert paper.world.target_placement == "footprint"
+    assert paper.sensor.model == "frustum"
+    assert paper.robots.budget == (7.0, 9.0)
+
+
+@pytest.mark.parametrize(
+    "override, needle",
+    [
+        ("robots.budget=[-1, 2]", "robots.budget: got [-1.0, 2.0]; allowed: [min, max]"),
+        ("robots.budget=[9, 7]", "min <= max"),
+        ("radio.collision_distance=0.4", "radio.collision_distance: got 0.4; allowed: less than radio.range"),
+        ("world.size=6", "world.size: got 6"),
+        ("candidates.positions=0", "candidates.positions: got 0"),
+        ("world.layout=spiral", "allowed: one of grid, random"),
+        ("world.size=12.5", "allowed: an integer"),
+        ("radio.relay=yes please", "allowed: true or false"),
+        ("world.buildings=400", "buildings fit"),
+        ("ppo.algo=sac", "one of ippo, mappo"),
+        ("gp.noise=0", "gp.noise: got 0.0"),
+    ],
+)
+def test_bad_values_give_one_clear_line(override, needle):
+    with pytest.raises(ConfigError) as err:
+        cfgmod.load("configs/default.yaml", [override])
+    message = str(err.value)
+    assert needle in message
+    assert "\n" not in message
+
+
+def test_near_miss_key_suggests_the_right_name():
+    with pytest.raises(ConfigError, match="did you mean 'world.size'"):
+        cfgmod.load(None, ["world.sise=50"])
+    with pytest.raises(ConfigError, match="did you mean 'radio'"):
+        cfgmod.from_dict({"radoi": {"range": 1.0}})
+
+
+def test_malformed_override_and_missing_file():
+    with pytest.raises(ConfigError, match="section.key=value"):
+        cfgmod.load(None, ["size=3"])
+    with pytest.raises(ConfigError, match="no such config file"):
+        cfgmod.load("configs/nope.yaml")
+
+
+def test_derived_counts_scale_with_world_size():
+    for size, buildings, targets in [(50, 25, 250), (75, 56, 562), (100, 100, 1000), (125, 156, 1562)]:
+        world = dataclasses.replace(Config().world, size=size)
+        assert world.n_buildings == buildings
+        assert world.target_capacity == targets

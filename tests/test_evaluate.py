@@ -1,0 +1,205 @@
+"""Evaluation sweeps: one compilation per shape, determinism, statistics, written outputs."""
+
+import csv
+import json
+import math
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy import stats
+
+from jaxmripp import config, evaluate, sweep
+
+ROOT = Path(__file__).resolve().parents[1]
+FAST = {"xla_backend_optimization_level": 0}  # compile fast; these tests run tiny worlds
+TINY = ["world.size=20", "robots.start=[0.0, 0.0, 0.5]", "candidates.positions=4",
+        "candidates.oversample=3", "eval.planners=[random]", "eval.team_sizes=[1, 2]",
+        "eval.world_sizes=[20]", "eval.radio_ranges=[.inf]", "eval.budgets=[1.5]",
+        "eval.worlds=3", "eval.trials=2", "eval.seed=7"]
+
+
+# ---------------------------------------------------------------------------------------
+# Statistics
+
+
+@pytest.mark.parametrize("sizes", [(5, 5), (7, 30), (250, 250), (2, 3)])
+def test_welch_ttest_matches_scipy(sizes):
+    rng = np.random.default_rng(sum(sizes))
+    a = rng.normal(50, 8, sizes[0])
+    b = rng.normal(46, 13, sizes[1])
+    t, df, p = evaluate.welch_ttest(a, b)
+    ref = stats.ttest_ind(a, b, equal_var=False)
+    assert t == pytest.approx(ref.statistic, rel=1e-10)
+    assert p == pytest.approx(ref.pvalue, rel=1e-8, abs=1e-300)
+    if hasattr(ref, "df"):
+        assert df == pytest.approx(ref.df, rel=1e-10)
+
+
+def test_welch_ttest_degenerate_samples():
+    assert evaluate.welch_ttest([3.0, 3.0], [3.0, 3.0])[2] == 1.0
+    t, _, p = evaluate.welch_ttest([4.0, 4.0, 4.0], [3.0, 3.0])
+    assert t == math.inf and p == 0.0
+    p_far = evaluate.welch_ttest(np.arange(30.0), np.arange(30.0) + 100)[2]
+    assert 0.0 <= p_far < 1e-20
+
+
+def test_mean_ci_is_student_t():
+    x = np.array([1.0, 2.0, 4.0, 7.0])
+    mean, std, half = evaluate.mean_ci(x)
+    lo, hi = stats.t.interval(0.95, len(x) - 1, loc=x.mean(), scale=stats.sem(x))
+    assert (mean - half, mean + half) == pytest.approx((lo, hi))
+    assert std == pytest.approx(x.std(ddof=1))
+
+
+# ---------------------------------------------------------------------------------------
+# Keys and shapes
+
+
+def test_world_and_trial_keys_are_fixed_and_distinct():
+    w1, w2 = evaluate.world_keys(3, 4), evaluate.world_keys(3, 6)
+    np.testing.assert_array_equal(w1, w2[:4])  # world w does not depend on the sweep size
+    t = np.asarray(evaluate.trial_keys(3, 4, 5)).reshape(-1, 2)
+    assert len({tuple(k) for k in t}) == 20
+    assert not set(map(tuple, t)) & set(map(tuple, np.asarray(w2)))
+    assert not np.array_equal(evaluate.world_keys(4, 4), w1)
+
+
+def _fake_cfg(**eval_fields):
+    base = dict(team_sizes=(16, 32), world_sizes=(75, 100), radio_ranges=(0.2, 0.15),
+                budgets=(3.0,))
+    base.update(eval_fields)
+    return types.SimpleNamespace(eval=types.SimpleNamespace(**base))
+
+
+def test_shapes_cross_zip_and_per_robot_budget():
+    crossed = sweep.shapes_of(_fake_cfg())
+    assert len(crossed) == 2 * 2 * 2
+    zipped = sweep.shapes_of(_fake_cfg(zip_with_size=("radio_ranges",), budget_mode="per_robot"))
+    assert [(s.size, s.n_robots, s.radio_range, s.budget) for s in zipped] == [
+        (75, 16, 0.2, 48.0), (75, 32, 0.2, 96.0), (100, 16, 0.15, 48.0), (100, 32, 0.15, 96.0)]
+    with pytest.raises(ValueError, match="radio_ranges"):
+        sweep.shapes_of(_fake_cfg(zip_with_size=("radio_ranges",), radio_ranges=(0.2,)))
+
+
+def test_pairs_and_planner_names():
+    assert sweep.default_pairs(["a", "b", "c"], []) == [("a", "b"), ("a", "c")]
+    assert sweep.default_pairs(["a", "b"], ["b : a"]) == [("b", "a")]
+    with pytest.raises(ValueError, match="eval.pairs"):
+        sweep.default_pairs(["a"], ["ab"])
+    cfg = config.load(None, ["eval.planners=[greedy, policy, random]"])
+    assert sweep.planner_names(cfg, {}) == ["greedy", "random"]
+    assert sweep.planner_names(cfg, {"full": None, "g0": None}) == ["greedy", "full", "g0", "random"]
+
+
+@pytest.mark.parametrize("name", ["eval_paper", "eval_scale", "eval_ablation"])
+def test_presets_load(name):
+    try:
+        cfg = config.load(ROOT / "configs" / f"{name}.yaml")
+    except config.ConfigError as err:
+        if "unknown key" in str(err):
+            pytest.skip(f"EvalConfig lacks a field the preset uses: {err}")
+        raise
+    shapes = sweep.shapes_of(cfg)
+    if name == "eval_scale":
+        assert {(s.size, s.radio_range) for s in shapes} == {(75, 0.2), (100, 0.15), (125, 0.12)}
+        assert len(shapes) == 12
+    else:
+        assert {s.radio_range for s in shapes} == {math.inf, 0.1}
+        assert cfg.eval.worlds * cfg.eval.trials == 250
+
+
+# ---------------------------------------------------------------------------------------
+# A tiny sweep: 2 shapes x 1 planner, 6 episodes each in chunks of 4 (one padded chunk)
+
+
+@pytest.fixture(scope="module")
+def tiny_sweep(tmp_path_factory):
+    cfg = config.load(ROOT / "configs" / "smoke.yaml", TINY)
+    evaluate.TRACES.clear()
+    lines = []
+    result = sweep.run_sweep(cfg, log=lines.append, batch=4, time_planning=True,
+                             compiler_options=FAST)
+    out = tmp_path_factory.mktemp("eval")
+    paths = sweep.write_outputs(result, out, cfg, command="pytest")
+    return cfg, result, lines, out, paths
+
+
+def test_one_compile_per_shape(tiny_sweep):
+    cfg, result, lines, _, _ = tiny_sweep
+    shapes = sweep.shapes_of(cfg)
+    assert len(shapes) == 2 and len(lines) == 2
+    assert dict(evaluate.TRACES) == {("random", s): 1 for s in shapes}  # 2 chunks each
+    for run in result.runs:
+        assert len(run.discovered) == 6 and run.discovered.shape == run.steps.shape
+        assert np.all((run.discovered >= 0) & (run.discovered <= 100))
+        assert np.isfinite(run.plan_ms_per_robot_step) and run.ms_per_robot_step > 0
+    assert "compile" in lines[0] and "N = 1, G = 20" in lines[0]
+
+
+def test_worlds_shared_across_shapes(tiny_sweep):
+    _, result, _, _, _ = tiny_sweep
+    one, two = result.runs
+    np.testing.assert_array_equal(one.snapshot.height, two.snapshot.height)
+    np.testing.assert_array_equal(one.targets, two.targets)
+    # trials of a world share it; different worlds differ
+    assert np.array_equal(one.snapshot.height[0], one.snapshot.height[1])
+    assert not np.array_equal(one.snapshot.height[0], one.snapshot.height[2])
+
+
+def test_outputs_written(tiny_sweep):
+    _, result, _, out, paths = tiny_sweep
+    for key in ("table", "csv", "json", "summary", "discovered_vs_budget_0.png",
+                "team_size", "episode_random", "gif_random"):
+        assert paths[key].is_file() and paths[key].stat().st_size > 0, key
+    table = (out / "results.md").read_text()
+    assert "| random |" in table and "95% CI" in table
+    rows = list(csv.DictReader((out / "runs.csv").open()))
+    assert len(rows) == 2 * 6
+    assert json.loads((out / "runs.json").read_text()) == json.loads(json.dumps(
+        result.records()))
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["summary"]) == 2 and summary["eval"]["planners"] == ["random"]
+    from PIL import Image
+    with Image.open(paths["gif_random"]) as gif:
+        assert gif.n_frames >= 1
+
+
+def _cli():
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
+    import eval as cli
+
+    return cli
+
+
+def test_cli_same_seed_same_table(tiny_sweep, tmp_path, monkeypatch):
+    """eval.py on one shape of the sweep reproduces its numbers and table rows exactly."""
+    _, result, _, _, _ = tiny_sweep
+    real = sweep.run_sweep
+    monkeypatch.setattr(sweep, "run_sweep",
+                        lambda *a, **k: real(*a, **{**k, "compiler_options": FAST, "batch": 4}))
+    code = _cli().main(["--config", str(ROOT / "configs" / "smoke.yaml"), "--out",
+                        str(tmp_path), "--no-render", "--no-timing", *TINY,
+                        "eval.team_sizes=[2]"])
+    assert code == 0
+    rows = list(csv.DictReader((tmp_path / "runs.csv").open()))
+    two = [r for r in result.records() if r["n_robots"] == 2]
+    assert rows == [{k: str(v) for k, v in r.items()} for r in two]
+    text = (tmp_path / "results.md").read_text()
+    again = sweep.SweepResult([r for r in result.runs if r.shape.n_robots == 2], result.pairs)
+    rows_md = [line for line in again.table(timing=False).splitlines() if line.startswith("| random")]
+    assert rows_md
+    for line in rows_md:  # planner, % targets and CI columns are identical
+        assert " | ".join(line.split(" | ")[:3]) in text
+
+
+def test_cli_rejects_bad_arguments(tmp_path, capsys):
+    cli = _cli()
+    assert cli.main(["--config", str(tmp_path / "missing.yaml")]) == 2
+    assert "no such config file" in capsys.readouterr().err
+    assert cli.main(["--config", str(ROOT / "configs" / "smoke.yaml"),
+                     "--policy", f"p={tmp_path}"]) == 2
+    assert "no config.yaml" in capsys.readouterr().err

@@ -1,0 +1,443 @@
+"""The NumPy onboard runtime: export format, ports of the GP / candidates, radio messages,
+safety filter, bad input, and that it never imports jax. Whole-episode parity with the JAX
+env lives in tests/test_runtime_episode.py."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp import candidates as jax_candidates
+from jaxmripp import config, export, gp as jax_gp, observation, policy as policymod, ppo
+from jaxmripp.config import GPConfig
+from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError, MessageError,
+                              OnboardPlanner, PlannerStateError, ProtocolVersionError,
+                              RuntimeSpec, WeightsFormatError)
+from jaxmripp.runtime import candidates as np_candidates
+from jaxmripp.runtime import messages, weights
+from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
+from jaxmripp.runtime.mapping import OCCUPIED, OccupancyMap
+
+REPO = Path(__file__).resolve().parents[1]
+CFG = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3"])
+
+
+def spec_of(cfg=CFG) -> RuntimeSpec:
+    return RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg))))
+
+
+def init_params(cfg=CFG, seed=0, noise=0.1):
+    """Flax params of cfg's policy, with weight noise so no output is degenerate."""
+    network = ppo.make_network(cfg)
+    n_cand = cfg.candidates.count
+    obs = observation.Observation(
+        features=jnp.zeros((n_cand, observation.N_FEATURES)), mask=jnp.ones((n_cand,), bool),
+        robot_state=jnp.zeros((observation.N_ROBOT_STATE,)),
+        global_state=jnp.zeros((observation.global_state_size(cfg.robots.count),)))
+    params = jax.jit(network.init)(jax.random.key(seed), policymod.initial_memory(cfg.policy), obs)
+    rng = np.random.default_rng(seed)
+    noisy = lambda x: np.float32(np.asarray(x) + noise * rng.normal(size=x.shape))  # noqa: E731
+    return network, jax.tree.map(noisy, params)
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    network, params = init_params()
+    out = tmp_path_factory.mktemp("export")
+    npz, header = export.export(CFG, params, out)
+    return out, network, params
+
+
+def sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=0):
+    planner.sense(np.asarray(position, np.float32), heading, np.zeros(0, np.int64),
+                  np.zeros(0, np.int8), n_seen)
+
+
+# ---------------------------------------------------------------------------------------
+# Export format
+
+
+def test_layout_and_header_match_the_jax_side(exported):
+    assert weights.FEATURES == observation.FEATURES
+    assert weights.ROBOT_STATE == observation.ROBOT_STATE
+    out, _, _ = exported
+    header = json.loads((out / "policy.json").read_text())
+    assert header["format_version"] == weights.FORMAT_VERSION
+    assert header["layout"]["features"] == list(observation.FEATURES)
+    assert header["policy"] == policymod.runtime_config(CFG.policy)
+    c = header["config"]
+    assert c["world"]["size"] == 30 and c["radio"]["range"] == CFG.radio.range
+    assert c["candidates"]["shell"] == list(CFG.candidates.shell)
+    assert c["gp"]["capacity"] == CFG.gp.capacity and c["reward"]["utility_norm"] == 16.0
+    assert c["robots"]["turn_cost"] == CFG.robots.turn_cost
+    spec = spec_of()
+    assert (spec.size, spec.n_candidates, spec.gp.capacity) == (30, CFG.candidates.count, 16)
+
+
+def test_export_round_trip_is_exact_and_hashed(exported):
+    out, _, params = exported
+    loaded = weights.load(out)
+    flat = policymod.flatten_params(params)
+    assert loaded.weights.keys() == flat.keys()
+    for name in flat:
+        np.testing.assert_array_equal(loaded.weights[name], flat[name])
+    assert loaded.header["weights"]["sha256"] == weights.weights_sha256(flat)
+    assert loaded.spec == spec_of()
+
+
+def test_infinite_radio_range_survives_strict_json(tmp_path):
+    cfg = config.load(REPO / "configs/smoke.yaml", ["radio.range=.inf"])
+    _, params = init_params(cfg)
+    export.export(cfg, params, tmp_path)
+    text = (tmp_path / "policy.json").read_text()
+    json.loads(text, parse_constant=lambda c: pytest.fail(f"non-standard JSON constant {c}"))
+    assert weights.load(tmp_path).spec.radio_range == float("inf")
+
+
+def _copy(exported, tmp_path):
+    out, _, _ = exported
+    for name in ("policy.npz", "policy.json"):
+        (tmp_path / name).write_bytes((out / name).read_bytes())
+    return tmp_path
+
+
+def test_other_format_version_is_refused(exported, tmp_path):
+    path = _copy(exported, tmp_path)
+    header = json.loads((path / "policy.json").read_text())
+    header["format_version"] = weights.FORMAT_VERSION + 1
+    (path / "policy.json").write_text(json.dumps(header))
+    with pytest.raises(WeightsFormatError, match="format version 2; this runtime reads version 1"):
+        OnboardPlanner.load(path, robot_id=0, budget=1.0)
+
+
+@pytest.mark.parametrize("name", ["policy.npz", "policy.json"])
+def test_truncated_files_are_refused(exported, tmp_path, name):
+    path = _copy(exported, tmp_path)
+    data = (path / name).read_bytes()
+    (path / name).write_bytes(data[: len(data) // 2])
+    with pytest.raises(CorruptWeightsError, match="truncated") as err:
+        weights.load(path)
+    assert "\n" not in str(err.value)
+
+
+def test_changed_weights_fail_the_hash(exported, tmp_path):
+    path = _copy(exported, tmp_path)
+    loaded = weights.load(path)
+    changed = dict(loaded.weights)
+    changed["embed/bias"] = changed["embed/bias"] + 1.0
+    np.savez(path / "policy.npz", **changed)
+    with pytest.raises(CorruptWeightsError, match="sha256"):
+        weights.load(path)
+
+
+def test_missing_header_fields_are_named(exported, tmp_path):
+    path = _copy(exported, tmp_path)
+    header = json.loads((path / "policy.json").read_text())
+    del header["config"]["gp"]["noise"]
+    (path / "policy.json").write_text(json.dumps(header))
+    with pytest.raises(WeightsFormatError, match="config.gp.noise"):
+        weights.load(path)
+
+
+# ---------------------------------------------------------------------------------------
+# NumPy-only
+
+
+def test_runtime_never_imports_jax(exported):
+    out, _, _ = exported
+    script = textwrap.dedent(f"""
+        import sys
+        import numpy as np
+        import jaxmripp.runtime as rt
+        from jaxmripp.runtime import candidates, errors, gp, mapping, messages
+        from jaxmripp.runtime import planner, policy, weights
+        planners = [rt.OnboardPlanner.load({str(out)!r}, robot_id=i, budget=1.0, team_size=2)
+                    for i in range(2)]
+        for step in range(3):
+            for i, p in enumerate(planners):
+                where = np.float32([0.3 + 0.2 * i, 0.5, 0.5]) if step == 0 else p_next[i]
+                p.sense(where, 1, np.array([5, 6]), np.array([0, 2]), 1)
+            inbox = [p.message() for p in planners]
+            planners[0].receive(inbox[1]); planners[1].receive(inbox[0])
+            p_next = [p.decide().position for p in planners]
+        heavy = ("jax", "jaxlib", "flax", "optax")
+        bad = sorted(m for m in sys.modules if m.split(".")[0] in heavy)
+        print("IMPORTED", bad)
+        assert not bad
+    """)
+    result = subprocess.run([sys.executable, "-c", script], cwd=REPO, capture_output=True,
+                            text=True, timeout=120)
+    assert result.returncode == 0, result.stderr[-2000:]
+    assert "IMPORTED []" in result.stdout
+
+
+# ---------------------------------------------------------------------------------------
+# Ports of the JAX math
+
+
+def test_gp_matches_jax_gp_through_eviction():
+    cfg = GPConfig(capacity=8, eval_grid=2)
+    spec = spec_of(config.from_dict({"gp": {"capacity": 8, "eval_grid": 2}})).gp
+    eval_poses = evaluation_poses(spec)
+    np.testing.assert_array_equal(eval_poses, np.asarray(jax_gp.evaluation_poses(cfg)))
+    rng = np.random.default_rng(0)
+    angles = np.float32([0, np.pi / 2, np.pi, 3 * np.pi / 2])
+    poses = np.concatenate([rng.random((20, 3)), angles[rng.integers(0, 4, (20, 1))]],
+                           1).astype(np.float32)
+    poses[7] = poses[6]  # an exact duplicate pose
+    values = rng.random(20).astype(np.float32)
+    queries = np.concatenate([rng.random((30, 3)), angles[rng.integers(0, 4, (30, 1))]],
+                             1).astype(np.float32)
+    queries[:5] = poses[15:]  # at stored points
+
+    add = jax.jit(jax_gp.add, static_argnums=3)
+    predict = jax.jit(jax_gp.predict, static_argnums=2)
+    state = jax_gp.empty(cfg, jnp.asarray(eval_poses))
+    ours = GaussianProcess(spec, eval_poses)
+    for i in range(20):  # 20 > 8: the ring buffer evicts 12 times
+        state = add(state, poses[i], values[i], cfg, jnp.asarray(eval_poses))
+        ours.add(poses[i], values[i])
+        mean, var = predict(state, queries, cfg)
+        our_mean, our_var = ours.predict(queries)
+        np.testing.assert_allclose(our_mean, mean, atol=2e-5)
+        np.testing.assert_allclose(our_var, var, atol=2e-5)
+        np.testing.assert_allclose(ours.trace, state.trace, rtol=1e-4)
+    np.testing.assert_array_equal(ours.valid, state.valid)
+    np.testing.assert_array_equal(ours.stamp, state.stamp)
+    np.testing.assert_allclose(ours.root, state.root, atol=1e-3)
+
+
+def test_candidates_match_jax_sampler_given_the_same_uniforms():
+    spec = spec_of()
+    cand, robots = CFG.candidates, CFG.robots
+    g = spec.size
+    occupancy = np.full((g, g, g), 1, np.int8)
+    occupancy[14:17, 10:20, :12] = OCCUPIED  # a wall next to the robot
+    others = np.float32([[0.5, 0.5, 0.3], [0.45, 0.36, 0.3], [0.9, 0.9, 0.9]])
+    known = np.array([False, True, False])  # row 0 is the robot itself
+    sample = jax.jit(jax_candidates.sample, static_argnums=(7, 8, 9, 10))
+    our_map = OccupancyMap(g)
+    our_map.codes[:] = occupancy.reshape(-1)
+    for seed in range(6):
+        key = jax.random.key(seed)
+        position, heading, budget = np.float32([0.5, 0.5, 0.3]), seed % 4, 0.2 + 0.05 * seed
+        want = jax.tree.map(np.asarray, sample(
+            key, position, jnp.int32(heading), jnp.float32(budget), occupancy, others, known,
+            cand, robots, spec.collision_distance, g))
+        uniforms = np.asarray(jax.random.uniform(key, (cand.positions * cand.oversample - 1, 3)))
+        got = np_candidates.sample(uniforms, position, heading, np.float32(budget), our_map,
+                                   others[known], spec)
+        np.testing.assert_array_equal(got.valid, want.valid)
+        np.testing.assert_array_equal(got.heading, want.heading)
+        np.testing.assert_allclose(got.position, want.position, atol=1e-6)
+        np.testing.assert_allclose(got.cost, want.cost, atol=1e-6)
+
+
+# ---------------------------------------------------------------------------------------
+# Map and safety filter
+
+
+def _slab_hits(start, end, codes, size):
+    """Independent reference: does the segment enter the interior of an occupied voxel?"""
+    s, e = np.asarray(start, np.float64) * size, np.asarray(end, np.float64) * size
+    lo = np.maximum(np.floor(np.minimum(s, e)) - 1, 0).astype(int)
+    hi = np.minimum(np.floor(np.maximum(s, e)) + 1, size - 1).astype(int)
+    grid = codes.reshape(size, size, size)
+    d = e - s
+    for v in np.argwhere(grid[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1] == OCCUPIED):
+        v = v + lo
+        t0, t1 = 0.0, 1.0
+        for a in range(3):
+            if d[a] == 0:
+                if not v[a] < s[a] < v[a] + 1:
+                    t0, t1 = 1.0, 0.0
+                continue
+            ta, tb = sorted(((v[a] - s[a]) / d[a], (v[a] + 1 - s[a]) / d[a]))
+            t0, t1 = max(t0, ta), min(t1, tb)
+        if t1 - t0 > 1e-9:
+            return True
+    return False
+
+
+def test_exact_traversal_agrees_with_a_slab_test_and_sees_corners_sampling_misses():
+    size = 12
+    grid = OccupancyMap(size)
+    rng = np.random.default_rng(3)
+    grid.codes[rng.random(size ** 3) < 0.03] = OCCUPIED
+    start = np.float32([0.51, 0.47, 0.52])
+    grid.codes[np.ravel_multi_index((6, 5, 6), (size,) * 3)] = 0  # the robot's own voxel
+    ends = rng.random((300, 3)).astype(np.float32) * 0.6 + 0.2
+    exact = grid.exact_clear(start, ends)
+    reference = np.array([not _slab_hits(start, e, grid.codes, size) for e in ends])
+    np.testing.assert_array_equal(exact, reference)
+
+    # A segment clipping the corner of one occupied voxel: half-voxel samples step over it.
+    corner = OccupancyMap(size)
+    corner.codes[np.ravel_multi_index((6, 6, 6), (size,) * 3)] = OCCUPIED
+    # x + y = 13.9: inside (6, 6, 6) for 6.9 < x < 7, a chord of 0.14 voxel; the 7
+    # samples of the candidate rule land at x = 6.87 (y = 7.03) and x = 7.03.
+    start, end = np.float32([6.4, 7.5, 6.5]) / size, np.float32([7.5, 6.4, 6.5]) / size
+    assert corner.sampled_clear(start, end[None], max_length=0.21)[0]
+    assert not corner.exact_clear(start, end[None])[0]
+    assert _slab_hits(start, end, corner.codes, size)
+
+
+def test_safety_filter_rejects_occupied_paths_and_close_robots_or_hovers_with_a_reason():
+    spec = spec_of()
+    planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
+    sense_free(planner)
+    # Candidates supplied by the caller: one through a wall, one next to robot 1, one fine.
+    wall = np.ravel_multi_index((17, 15, 15), (spec.size,) * 3)
+    planner.map.codes[wall] = OCCUPIED
+    peer = OnboardPlanner(spec, 1, budget=1.0, team_size=3)
+    sense_free(peer, position=(0.5, 0.3, 0.5))
+    planner.receive(peer.message())
+    offered = Candidates(np.float32([[0.7, 0.5, 0.5], [0.5, 0.31, 0.5], [0.5, 0.5, 0.7]]),
+                         np.int32([0, 3, 1]), None, None)
+    d = planner.decide(candidates=offered)
+    np.testing.assert_array_equal(d.safe, [False, False, True])
+    assert d.index == 2 and not d.hover and d.reason == "greedy"
+
+    # Nothing safe: it hovers at its pose and says why (it did not fly: stopped at start).
+    sense_free(planner)
+    planner.receive(peer.message())
+    d = planner.decide(candidates=Candidates(offered.position[:2], offered.heading[:2], None,
+                                             None))
+    assert d.hover and d.index == -1
+    np.testing.assert_array_equal(d.position, planner.position)
+    assert "1 cross a voxel known occupied" in d.reason and "within d_c" in d.reason
+
+
+def test_own_sampling_respects_every_rule():
+    spec = spec_of()
+    planner = OnboardPlanner(spec, 0, budget=0.5, team_size=3, seed=4)
+    sense_free(planner, position=(0.5, 0.5, 0.2))
+    peer = OnboardPlanner(spec, 2, budget=1.0, team_size=3)
+    sense_free(peer, position=(0.5, 0.65, 0.25))
+    planner.receive(peer.message())
+    planner.map.grid[15:18, 16:22, :8] = OCCUPIED
+    for _ in range(5):
+        d = planner.decide()
+        assert not d.hover
+        c = d.candidates
+        ok = c.valid & d.safe
+        assert ok.any()
+        gaps = np.linalg.norm(c.position[ok] - planner.position, axis=-1)
+        assert np.all((gaps == 0) | ((gaps >= 0.19 - 1e-6) & (gaps <= 0.21 + 1e-6)))
+        assert np.all(np.linalg.norm(c.position[ok] - peer.position, axis=-1) > 0.05)
+        assert np.all(c.cost[ok] <= planner.budget_left)
+        assert planner.map.exact_clear(planner.position, c.position[ok]).all()
+        planner._command = None  # decide again from the same pose
+
+
+def test_budget_exhaustion_hovers():
+    planner = OnboardPlanner(spec_of(), 0, budget=0.01, team_size=3)
+    sense_free(planner)
+    d = planner.decide()
+    assert d.hover and "budget exhausted" in d.reason
+
+
+# ---------------------------------------------------------------------------------------
+# Sensing, budget and radio bookkeeping
+
+
+def test_sense_charges_distance_and_turns_and_records_history():
+    spec = spec_of()
+    planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
+    sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=3)
+    d = planner.decide()
+    planner.sense(d.position, d.heading, np.array([0, 27_000]), np.array([2, 0]), 5)
+    expected = 1.0 - np.linalg.norm(d.position - np.float32([0.5, 0.5, 0.5])) \
+        - (spec.turn_cost if d.heading != 1 else 0.0)
+    assert planner.budget_left == pytest.approx(expected, abs=1e-6)
+    assert planner.map.codes[0] == OCCUPIED  # index G^3 = 27000 means "not observed"
+    assert len(planner.history_pose) == 2 and planner.step == 1
+    np.testing.assert_allclose(planner.history_utility, np.float32([3, 5]) / 16)
+    # A hover is not a move: the next sense records nothing and charges nothing.
+    planner.decide(candidates=Candidates(planner.position[None], np.int32([planner.heading]),
+                                         None, None))
+    sense_free(planner, position=planner.position, heading=planner.heading)
+    assert len(planner.history_pose) == 2 and planner.budget_left == pytest.approx(expected)
+
+
+def test_messages_round_trip_float32_exactly_and_extend_histories():
+    spec = spec_of()
+    a, b = (OnboardPlanner(spec, i, budget=1.0, team_size=3) for i in range(2))
+    rng = np.random.default_rng(0)
+    for k in range(3):
+        sense_free(a, position=rng.random(3).astype(np.float32), heading=k, n_seen=k)
+        a._command = (a.position, a.position)  # pretend it moved: every sense is recorded
+    message = messages.decode(a.message())
+    np.testing.assert_array_equal(message.poses, np.asarray(a.history_pose))
+    np.testing.assert_array_equal(message.utilities, np.asarray(a.history_utility))
+    sense_free(b)
+    b.receive(a.message(start=0))
+    b.receive(a.message(start=2))  # overlapping: nothing duplicated
+    assert len(b.peer_pose[0]) == 3 and b.receive(b.message()) is None  # own echo ignored
+    np.testing.assert_array_equal(b.contacts[0], a.position)
+
+
+def test_newer_protocol_and_malformed_messages_are_refused_without_side_effects():
+    spec = spec_of()
+    a, b = (OnboardPlanner(spec, i, budget=1.0, team_size=3) for i in range(2))
+    sense_free(a)
+    sense_free(b)
+    record = json.loads(a.message())
+    newer = dict(record, protocol=messages.PROTOCOL_VERSION + 1)
+    with pytest.raises(ProtocolVersionError, match="protocol 2; this runtime speaks up to 1"):
+        b.receive(json.dumps(newer).encode())
+    bad = [b"\x00garbage", json.dumps(dict(record, poses=[[0.1, 0.2, float("nan"), 0.0]])),
+           json.dumps(dict(record, sender=7)), json.dumps(dict(record, utilities=[])),
+           json.dumps(dict(record, position=[2.0, 0.0, 0.0])), json.dumps({"type": "other"})]
+    for data in bad:
+        with pytest.raises(MessageError) as err:
+            b.receive(data)
+        assert "\n" not in str(err.value)
+    assert b.contacts == {} and all(len(h) == 0 for h in b.peer_pose.values())
+
+
+def test_nan_pose_and_bad_sensing_raise_one_clear_error_and_change_nothing():
+    spec = spec_of()
+    planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
+    with pytest.raises(PlannerStateError):
+        planner.decide()
+    sense_free(planner)
+    d = planner.decide()
+    snapshot = (planner.map.codes.copy(), len(planner.history_pose), planner.budget_left,
+                planner.step, planner.utility_gp.count, planner._command)
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int8), 0)
+    cases = [
+        lambda: planner.sense(np.float32([0.5, np.nan, 0.5]), 1, *empty),
+        lambda: planner.sense(np.float32([0.5, 1.5, 0.5]), 1, *empty),
+        lambda: planner.sense(np.float32([0.5, 0.5]), 1, *empty),
+        lambda: planner.sense(d.position, 7, *empty),
+        lambda: planner.sense(d.position, 1, np.array([-3]), np.array([0]), 0),
+        lambda: planner.sense(d.position, 1, np.array([3]), np.array([9]), 0),
+        lambda: planner.sense(d.position, 1, np.zeros(0, np.int64), np.zeros(0, np.int8), -1),
+        lambda: planner.decide(candidates=Candidates(np.float32([[np.nan, 0.5, 0.5]]),
+                                                     np.int32([0]), None, None)),
+        lambda: planner.decide(tie_break=np.zeros(3)),
+    ]
+    for case in cases:
+        with pytest.raises(InvalidPoseError) as err:
+            case()
+        assert "\n" not in str(err.value)
+    after = (planner.map.codes, len(planner.history_pose), planner.budget_left, planner.step,
+             planner.utility_gp.count, planner._command)
+    np.testing.assert_array_equal(after[0], snapshot[0])
+    assert after[1:5] == snapshot[1:5] and after[5] is snapshot[5]
+
+
+def test_policy_mode_needs_weights_and_ids_are_checked():
+    with pytest.raises(ValueError, match="needs a policy"):
+        OnboardPlanner(spec_of(), 0, budget=1.0, mode="policy")
+    with pytest.raises(ValueError, match="robot_id"):
+        OnboardPlanner(spec_of(), 3, budget=1.0, team_size=3)

@@ -1,0 +1,44 @@
+"""Train a policy: `python train.py --config configs/default.yaml [section.key=value ...]`."""
+
+import argparse
+import sys
+from pathlib import Path
+
+from jaxmripp import config as cfgmod
+from jaxmripp import pipeline
+from jaxmripp import train as trainmod
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its last checkpoint")
+    parser.add_argument("--stop-after-chunks", type=int, default=None,
+                        help="stop after this many chunks (resume later with --resume)")
+    parser.add_argument("--runs", default="runs", help="where new run folders are created")
+    parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. world.size=64")
+    args = parser.parse_args(argv)
+    try:
+        if args.resume:
+            run_dir = Path(args.resume)
+            cfg = cfgmod.load(run_dir / "config.yaml", args.overrides)
+        else:
+            cfg = cfgmod.load(args.config, args.overrides)
+            run_dir = trainmod.fresh_run_dir(Path(args.runs), cfg.train.name)
+    except cfgmod.ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    print(f"run folder: {run_dir}")
+    state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
+                           stop_after_chunks=args.stop_after_chunks)
+    finished = int(state.update) >= cfg.train.updates
+    if finished and not args.no_eval:
+        pipeline.report(cfg, run_dir)
+    print(f"results: {run_dir}/ (metrics.jsonl, learning_curve.png, eval_table.md, "
+          "discovered_vs_budget.png, episode_policy.png, checkpoints/)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
