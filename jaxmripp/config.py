@@ -302,6 +302,9 @@ def _cross_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if w.n_buildings > lots * lots:
         problems.append(("world.buildings", w.buildings,
                          f"at most {lots * lots} buildings fit a {w.size}^3 world"))
+    if w.target_placement == "facade" and w.clearance < 1:
+        problems.append(("world.clearance", w.clearance,
+                         "at least 1 with facade windows (every window must face free air)"))
     if w.target_placement == "footprint" and cfg.sensor.model == "raycast":
         problems.append(("world.target_placement", w.target_placement,
                          "facade with sensor.model=raycast (footprint windows are inside walls)"))

@@ -379,7 +379,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
 
         return tree_search_planner(params, simulations=get("mcts_simulations"),
                                    max_depth=get("mcts_depth"),
-                                   considered=get("mcts_considered"), kappa=kappa)
+                                   considered=get("mcts_considered"), kappa=get("mcts_kappa"))
     raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, mcts, "
                      "oracle (and policy, which needs --policy)")
 
@@ -392,8 +392,9 @@ EVAL_DEFAULTS = {
     "coordinated_lambda": 1.0,
     "coordinated_mu": 1.0,
     "mcts_simulations": 16,
-    "mcts_depth": 3,
-    "mcts_considered": 8,
+    "mcts_depth": 2,
+    "mcts_considered": 4,
+    "mcts_kappa": 0.3,
     "budget_mode": "team",
     "zip_with_size": (),
     "pairs": (),

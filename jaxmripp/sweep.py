@@ -146,7 +146,7 @@ class SweepResult:
         for shape in self.shapes():
             runs = self.of(shape)
             first = next(iter(runs.values()))
-            out.append(f"### {shape.label()}: {first.worlds} worlds x {first.trials} trials")
+            out += [f"### {shape.label()}: {first.worlds} worlds x {first.trials} trials", ""]
             head = "| planner | % targets | 95% CI |"
             rule = "|---|---|---|"
             if timing:
@@ -232,7 +232,12 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
                 f"({run.ms_per_robot_step:.3f} ms/robot-step{plan}) -> "
                 f"{mean:.2f} +- {std:.2f} % targets")
             runs.append(run)
-    return SweepResult(runs, default_pairs(names, eval_setting(cfg, "pairs")))
+    pairs = default_pairs(names, eval_setting(cfg, "pairs"))
+    for a, b in pairs:
+        missing = [x for x in (a, b) if x not in names]
+        if missing:
+            log(f"note: t-test {a}:{b} skipped: no planner named {', '.join(missing)}")
+    return SweepResult(runs, pairs)
 
 
 def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None = None,
@@ -252,8 +257,8 @@ def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None =
              "environment step (sensing, maps, GPs, radio, candidates) amortised over the "
              "vmapped batch. Collisions are per episode.", "", result.table()]
     if any(s.n_robots == 3 and s.size == 50 and s.budget == 10 for s in result.shapes()):
-        text += ["### Published (Table I of the paper; its own simulator, seconds per step)",
-                 "", "| planner | rho | % targets | s / step |", "|---|---|---|---|"]
+        text += ["### Published (Table I of the paper; its own simulator, seconds per step)", "",
+                 "| planner | rho | % targets | s / step |", "|---|---|---|---|"]
         text += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in PUBLISHED]
         text.append("")
     paths["table"] = out / "results.md"

@@ -8,6 +8,7 @@ Every random draw is keyed by `fold_in(seed key, update)`.
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass
@@ -47,7 +48,9 @@ class Trainer:
     chunk: Callable[[TrainState], tuple[TrainState, dict]]
 
     @classmethod
+    @functools.lru_cache(maxsize=8)
     def build(cls, cfg: Config) -> "Trainer":
+        """Cached per config, so a resumed run in the same process reuses the compiled chunk."""
         env_params = EnvParams.from_config(cfg)
         network = ppo.make_network(cfg)
         optimizer = ppo.make_optimizer(cfg.ppo)
@@ -56,11 +59,16 @@ class Trainer:
 
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
-        obs, _ = envmod.reset(jax.random.fold_in(key, -1 & 0x7FFFFFFF), self.env_params)
-        one_robot = jax.tree.map(lambda x: x[0], obs)
         params = self.network.init(jax.random.fold_in(key, 1 << 30),
-                                   initial_memory(self.cfg.policy), one_robot)
+                                   initial_memory(self.cfg.policy),
+                                   example_observation(self.env_params))
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32))
+
+
+def example_observation(params: EnvParams):
+    """Zeros shaped like one robot's observation, without running (or compiling) a reset."""
+    shapes = jax.eval_shape(lambda: envmod.reset(jax.random.PRNGKey(0), params)[0])
+    return jax.tree.map(lambda s: jnp.zeros(s.shape[1:], s.dtype), shapes)
 
 
 def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):

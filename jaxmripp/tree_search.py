@@ -102,8 +102,8 @@ def _clear(start, ends, occupancy, size: int, max_length: float):
     return jnp.all(occupancy[v[..., 0], v[..., 1], v[..., 2]] != geometry.OCCUPIED, axis=-1)
 
 
-def tree_search_planner(params, simulations: int = 16, max_depth: int = 3,
-                        considered: int = 8, kappa: float = 1.0, discount: float = 0.9,
+def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
+                        considered: int = 4, kappa: float = 0.3, discount: float = 0.9,
                         temperature: float = 0.1, gumbel_scale: float = 0.0,
                         novelty: bool = True, name: str = "mcts") -> Planner:
     """The MCTS baseline (module docstring); `params` is the env's EnvParams."""

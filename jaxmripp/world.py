@@ -82,7 +82,8 @@ def _check(cfg: WorldConfig) -> None:
     n, lots = cfg.n_buildings, _max_lots(cfg)
     if lots < 1 or n > lots * lots:
         raise ValueError(f"world: {n} buildings of footprint {cfg.footprint} with clearance "
-                         f"{cfg.clearance} do not fit a {cfg.size}^2 ground ({max(lots, 0)}^2 lots)")
+                         f"{cfg.clearance} do not fit a {cfg.size}^2 ground "
+                         f"({max(lots, 0)}^2 lots)")
     if cfg.target_placement == "facade" and cfg.clearance < 1:
         raise ValueError("world: facade windows need world.clearance >= 1 so that every "
                          "perimeter voxel faces free space")
@@ -180,9 +181,9 @@ def generate(key: chex.PRNGKey, cfg: WorldConfig) -> World:
 def occupied(world: World, voxel: jax.Array) -> jax.Array:
     """(..., 3) int voxels -> (...,) bool: inside a building. Out-of-grid voxels are free."""
     size = world.height.shape[-1]
-    inside = jnp.all((voxel >= 0) & (voxel < size), axis=-1)
-    xy = jnp.clip(voxel[..., :2], 0, size - 1)
-    return inside & (voxel[..., 2] < world.height[xy[..., 0], xy[..., 1]])
+    x, y, z = (voxel[..., k] for k in range(3))  # per axis: no small trailing reductions
+    inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
+    return inside & (z < world.height[jnp.clip(x, 0, size - 1), jnp.clip(y, 0, size - 1)])
 
 
 def truth_occupancy(world: World, size: int) -> jax.Array:

@@ -73,7 +73,8 @@ def line_clear(solid: np.ndarray, start: np.ndarray, end: np.ndarray, target) ->
 
 
 def los_visible(solid, camera, target) -> bool:
-    """Visible iff the line to the voxel centre or to a face centre turned to the camera is clear."""
+    """Visible iff the line to the voxel centre, or to a face centre turned to the camera,
+    is clear."""
     c = np.asarray(target) + 0.5
     points = [c]
     for axis in range(3):
@@ -101,7 +102,7 @@ def test_agrees_with_brute_force_line_of_sight():
         windows = np.asarray(w.target_voxel)[np.asarray(w.target_valid)]
         for position, heading in free_poses(w, 50, seed):
             seen = np.asarray(_cast(w, jnp.asarray(position), jnp.int32(heading), SENSOR, G).seen)
-            camera = position * G
+            camera = np.floor(position * G) + 0.5  # the sensor sits at its voxel's centre
             for t, v in enumerate(windows):
                 if in_view(camera, heading, v):
                     truth = los_visible(solid, camera, v)
@@ -137,7 +138,8 @@ def test_wall_hides_window_and_voxels_behind_it():
     codes = observed_codes(result)
     assert codes[5, 10, 5] == geometry.FREE
     assert codes[8, 10, 5] == geometry.OCCUPIED
-    assert codes[10, 10, 5] == geometry.UNKNOWN  # free, but behind the wall
+    assert codes[9, 10, 5] == geometry.UNKNOWN  # free, but right behind the wall
+    assert codes[10, 10, 5] == geometry.UNKNOWN
     assert codes[12, 10, 5] == geometry.UNKNOWN
     assert int(sensing.utility(result)) == 1
 
@@ -201,6 +203,23 @@ def test_maps_match_truth_and_occupied_never_turns_free():
     assert (before == geometry.OCCUPIED).sum() > 0 and (before == geometry.FREE).sum() > 1000
 
 
+@pytest.mark.parametrize("size", [75, 125])
+def test_larger_worlds(size):
+    w = random_world(size, size=size)
+    truth = np.asarray(world.truth_occupancy(w, size)).reshape(-1)
+    cast = jax.jit(jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None)), static_argnums=(3, 4))
+    poses = free_poses(w, 8, seed=size, size=size)
+    position = jnp.asarray(np.stack([p for p, _ in poses]))
+    result = cast(w, position, jnp.asarray([h for _, h in poses]), SENSOR, size)
+    voxels, values = np.asarray(result.voxels), np.asarray(result.values)
+    assert voxels.shape[1] == sensing.view_size(SENSOR, size)
+    keep = voxels < size**3
+    assert keep.sum() > 0
+    np.testing.assert_array_equal(values[keep], truth[voxels[keep]])
+    seen = np.asarray(result.seen)
+    assert not seen[:, ~np.asarray(w.target_valid)].any()
+
+
 def test_empty_occupancy():
     occupancy = sensing.empty_occupancy(S)
     assert occupancy.shape == (S, S, S) and occupancy.dtype == jnp.int8
@@ -248,8 +267,7 @@ def test_frustum_matches_reference_rule():
 @pytest.mark.parametrize("model", ["raycast", "frustum"])
 def test_vmap_over_envs_and_robots_matches_single_casts(model):
     sensor = SensorConfig(model=model)
-    worlds = jax.vmap(lambda k: world.generate(k, WorldConfig(layout="random")))(
-        jax.random.split(jax.random.PRNGKey(9), 2))
+    worlds = jax.tree.map(lambda *x: jnp.stack(x), random_world(0), random_world(1))
     key_p, key_h = jax.random.split(jax.random.PRNGKey(1))
     position = jax.random.uniform(key_p, (2, 3, 3))
     heading = jax.random.randint(key_h, (2, 3), 0, 4)
@@ -262,9 +280,19 @@ def test_vmap_over_envs_and_robots_matches_single_casts(model):
             single = _cast(w, position[e, r], heading[e, r], sensor, G)
             for x, y in zip(jax.tree.leaves(single), jax.tree.leaves(result)):
                 np.testing.assert_array_equal(x, y[e, r])
-    maps = jax.vmap(jax.vmap(sensing.update_occupancy))(
-        jnp.broadcast_to(sensing.empty_occupancy(G), (2, 3, G, G, G)), result)
-    assert maps.shape == (2, 3, G, G, G)
+    # The batched update folds all maps into one flat scatter; it must equal per-map ones,
+    # also when the maps are shared (unbatched) at the inner level.
+    empty = sensing.empty_occupancy(G)
+    maps = jax.jit(jax.vmap(jax.vmap(sensing.update_occupancy)))(
+        jnp.broadcast_to(empty, (2, 3, G, G, G)), result)
+    shared = jax.jit(jax.vmap(jax.vmap(sensing.update_occupancy, in_axes=(None, 0))))(
+        jnp.broadcast_to(empty, (2, G, G, G)), result)
+    update = jax.jit(sensing.update_occupancy)
+    for e in range(2):
+        for r in range(3):
+            single = update(empty, jax.tree.map(lambda x: x[e, r], result))
+            np.testing.assert_array_equal(maps[e, r], single)
+            np.testing.assert_array_equal(shared[e, r], single)
     assert sensing.utility(result).shape == (2, 3)
 
 

@@ -92,7 +92,8 @@ def check_windows(cfg: WorldConfig, w):
     if cfg.target_placement == "facade":
         padded = np.pad(w.height, 1)  # out of the grid is free
         x, y, z = v[:, 0] + 1, v[:, 1] + 1, v[:, 2]
-        neighbours = np.stack([padded[x - 1, y], padded[x + 1, y], padded[x, y - 1], padded[x, y + 1]])
+        neighbours = np.stack([padded[x - 1, y], padded[x + 1, y],
+                               padded[x, y - 1], padded[x, y + 1]])
         assert np.all(np.any(neighbours <= z, axis=0)), "every facade window faces free space"
 
 
@@ -106,7 +107,8 @@ def test_windows_at_every_world_size(size):
 
 def test_window_count_varies_in_range():
     cfg = WorldConfig(targets=(200, 250))
-    worlds = jax.vmap(lambda k: world.generate(k, cfg))(jax.random.split(jax.random.PRNGKey(0), 16))
+    keys = jax.random.split(jax.random.PRNGKey(0), 16)
+    worlds = jax.jit(jax.vmap(lambda k: world.generate(k, cfg)))(keys)
     counts = np.asarray(worlds.n_targets)
     assert counts.min() >= 200 and counts.max() <= 250 and len(np.unique(counts)) > 4
 

@@ -1,0 +1,142 @@
+"""Environment throughput: one jitted, vmapped team step with the random planner.
+
+Default setting (issue 4): N = 3 robots, G = 50, L = 80 candidates, 1024 environments,
+everything on (ray-cast sensing with occlusion, per-robot utility and communication GPs,
+radio exchange at rho = 0.3, rewards). The step (random action choice + `env.step`) is
+jitted over the vmapped batch with the state donated; `env.agent_steps_per_s` is
+envs x robots / the median step time.
+
+The same run times the step's parts separately on the same batch, each jitted and
+vmapped alone (they are not donated, so each also pays for copying its outputs):
+sensing (ray casts + occupancy-map updates), GP updates (`env._feed_gps`: own pose, peers'
+poses, the trace bookkeeping for r_e / r_c), GP predictions (`env.observe`'s posterior mean
+and variance at every candidate, both GPs) and candidates (`candidates.sample`). Shares are
+part time / step time; they need not sum to 1 (the rest is motion, radio, rewards and
+copies, and XLA fuses differently when a part is compiled alone).
+
+Usage (from the repository root): python benchmarks/env.py [--envs 1024] [--robots 3]
+    [--size 50] [--repeats 5] [--set key=value ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from common import emit, median_seconds  # noqa: E402
+from jaxmripp import baselines, candidates as cands, config, env as envmod, gp, sensing  # noqa: E402
+
+
+def build(args):
+    overrides = [f"world.size={args.size}", f"robots.count={args.robots}", *args.set]
+    cfg = config.load(None, overrides)
+    return envmod.EnvParams.from_config(cfg)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--robots", type=int, default=3)
+    parser.add_argument("--size", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("--no-parts", action="store_true", help="skip the per-part timings")
+    args = parser.parse_args()
+    params = build(args)
+    envs, n = args.envs, params.n_robots
+    common = dict(envs=envs, robots=n, size=params.size, candidates=params.n_candidates,
+                  gp_capacity=params.gp.capacity, backend=jax.default_backend())
+
+    keys = jax.random.split(jax.random.PRNGKey(0), envs)
+    start = time.perf_counter()
+    reset = jax.jit(jax.vmap(lambda k: envmod.reset(k, params)))
+    obs, state = jax.block_until_ready(reset(keys))
+    emit("env.reset_compile_and_run_s", time.perf_counter() - start, "s", **common)
+
+    planner = baselines.random_planner()
+
+    def team_step(key, obs, state):
+        key_act, key_step = jax.random.split(key)
+        _, actions = planner.act(key_act, None, obs, state)
+        obs, state, reward, done, info = envmod.step(key_step, state, actions, params)
+        return obs, state, reward
+
+    step = jax.jit(jax.vmap(team_step), donate_argnums=(1, 2))
+    holder = {"obs": obs, "state": state, "key": jax.random.PRNGKey(1)}
+
+    def run():
+        holder["key"], key = jax.random.split(holder["key"])
+        holder["obs"], holder["state"], reward = step(jax.random.split(key, envs),
+                                                      holder["obs"], holder["state"])
+        return reward
+
+    start = time.perf_counter()
+    jax.block_until_ready(run())
+    emit("env.step_compile_and_run_s", time.perf_counter() - start, "s", **common)
+    # Warm-up steps move the robots off the start and fill the GPs a little.
+    seconds = median_seconds(run, repeats=args.repeats, warmup=2)
+    emit("env.agent_steps_per_s", envs * n / seconds, "agent-steps/s", **common,
+         step_s=round(seconds, 4))
+    emit("env.env_steps_per_s", envs / seconds, "env-steps/s", **common)
+    if args.no_parts:
+        return
+
+    # Parts of the step, each on the same batch (the current state).
+    state = holder["state"]
+    p = params
+
+    def sensing_part(s):
+        casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
+            s.world, s.position, s.heading, p.sensor, p.size)
+        return jax.vmap(sensing.update_occupancy)(s.occupancy, casts), casts.seen
+
+    def gp_update_part(s):
+        s, r_e, r_c = envmod._feed_gps(s, p)
+        return s.utility_gp, s.comm_gp, r_e, r_c
+
+    def gp_predict_part(s):
+        poses = jax.vmap(lambda c: jax.vmap(lambda q, h: jnp.concatenate(
+            [q, jnp.asarray(envmod.geometry.HEADING_ANGLES)[h][None]]))(c.position, c.heading))(
+            s.candidates)
+        ugp = s.utility_gp if not p.gp.shared_utility else jax.tree.map(
+            lambda x: jnp.broadcast_to(x, (n, *x.shape[1:])), s.utility_gp)
+        predict = jax.vmap(gp.predict, in_axes=(0, 0, None))
+        return predict(ugp, poses, p.gp), predict(s.comm_gp, poses, p.gp)
+
+    def candidates_part(s, key):
+        k = jax.random.split(key, n)
+        contact = envmod.comms.contacts(s.position, p.radio.range)
+        return jax.vmap(cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
+            k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
+            p.candidates, p.robots, p.radio.collision_distance, p.size)
+
+    parts = {
+        "sensing": (jax.jit(jax.vmap(sensing_part)), (state,)),
+        "gp_update": (jax.jit(jax.vmap(gp_update_part)), (state,)),
+        "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), (state,)),
+        "candidates": (jax.jit(jax.vmap(candidates_part)), (state, keys)),
+    }
+    part_seconds = {}
+    for name, (fn, fn_args) in parts.items():
+        part_seconds[name] = median_seconds(lambda: fn(*fn_args), repeats=args.repeats)
+        emit(f"env.part_{name}_s", part_seconds[name], "s", **common)
+    # Re-time the whole step after the parts, and use the mean of both step timings, so
+    # that load changes on a shared machine during the run bias the shares less.
+    seconds = 0.5 * (seconds + median_seconds(run, repeats=args.repeats, warmup=0))
+    emit("env.step_s", seconds, "s", **common)
+    for name, value in part_seconds.items():
+        emit(f"env.share_{name}", value / seconds, "fraction", **common)
+    emit("env.share_gps", (part_seconds["gp_update"] + part_seconds["gp_predict"]) / seconds,
+         "fraction", **common)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,77 @@
+"""Training throughput: rollout (env + policy) vs policy alone, and PPO update speed.
+
+python benchmarks/train.py [--envs 1024] [--steps 4] [section.key=value ...]
+Prints JSON lines; all figures come from one run, so their ratio is meaningful.
+"""
+
+import argparse
+import os
+import sys
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+
+from common import emit, median_seconds  # noqa: E402
+from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp import ppo  # noqa: E402
+from jaxmripp import train as trainmod  # noqa: E402
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--steps", type=int, default=4, help="rollout steps timed per call")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("overrides", nargs="*")
+    args = parser.parse_args()
+    cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
+                                    f"train.rollout_steps={args.steps}", *args.overrides])
+    trainer = trainmod.Trainer.build(cfg)
+    state = trainer.init()
+    runner = jax.jit(lambda key: ppo.start_runner(key, cfg, trainer.env_params))(
+        jax.random.PRNGKey(0))
+    agents = args.envs * cfg.robots.count
+
+    rollout = jax.jit(lambda key, runner, params: ppo.rollout(
+        key, runner, params, trainer.network, cfg, trainer.env_params))
+    seconds = median_seconds(lambda: rollout(jax.random.PRNGKey(1), runner, state.params),
+                             repeats=args.repeats)
+    rollout_rate = agents * args.steps / seconds
+
+    @jax.jit
+    def policy_only(key, params, memory, obs):
+        def body(carry, key):
+            memory = carry
+            memory, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
+            action = ppo.distribution(logits, obs.mask).sample(seed=key)
+            return memory, (action, value)
+        return jax.lax.scan(body, memory, jax.random.split(key, args.steps))
+
+    seconds_policy = median_seconds(
+        lambda: policy_only(jax.random.PRNGKey(2), state.params, runner.memory, runner.obs),
+        repeats=args.repeats)
+    policy_rate = agents * args.steps / seconds_policy
+
+    _, batch, _ = rollout(jax.random.PRNGKey(3), runner, state.params)
+    last_value = jnp.zeros(batch.reward.shape[1:])
+    update = jax.jit(lambda key, params, opt: ppo.update(
+        key, params, opt, trainer.network, trainer.optimizer, batch, last_value, cfg.ppo))
+    seconds_update = median_seconds(
+        lambda: update(jax.random.PRNGKey(4), state.params, state.opt_state),
+        repeats=args.repeats)
+    samples = agents * args.steps * cfg.ppo.epochs
+
+    shape = dict(envs=args.envs, robots=cfg.robots.count, candidates=cfg.candidates.count,
+                 width=cfg.policy.width, world=cfg.world.size, device=jax.default_backend())
+    emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
+    emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
+    emit("train.rollout_vs_policy_ratio", rollout_rate / policy_rate, "ratio", **shape)
+    emit("train.update_samples_per_s", samples / seconds_update, "samples/s",
+         epochs=cfg.ppo.epochs, **shape)
+
+
+if __name__ == "__main__":
+    main()

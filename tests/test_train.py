@@ -1,0 +1,136 @@
+"""PPO and the training loop on the smoke config (one chunk compilation, shared)."""
+
+import json
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp import config as cfgmod
+from jaxmripp import ppo
+from jaxmripp import train as trainmod
+from jaxmripp.checkpoint import Checkpoints, CheckpointError
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return cfgmod.load("configs/smoke.yaml")
+
+
+@pytest.fixture(scope="module")
+def trainer(cfg):
+    return trainmod.Trainer.build(cfg)
+
+
+def _leaves_equal(a, b):
+    return all(np.array_equal(x, y) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
+
+
+@pytest.fixture(scope="module")
+def full_run(cfg, tmp_path_factory):
+    run_dir = tmp_path_factory.mktemp("runs") / "full"
+    state = trainmod.train(cfg, run_dir, log=lambda _: None)
+    return run_dir, state
+
+
+def test_smoke_run_trains_three_chunks_with_finite_metrics(cfg, full_run):
+    run_dir, state = full_run
+    assert int(state.update) == cfg.train.updates == 3
+    records = trainmod.read_metrics(run_dir)
+    assert [r["update"] for r in records] == [1, 2, 3]
+    for record in records:
+        for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "return", "discovered"):
+            assert np.isfinite(record[key]), key
+    assert all(np.isfinite(x).all() for x in jax.tree.leaves(state.params))
+    assert (run_dir / "config.yaml").exists()
+    assert cfgmod.load(run_dir / "config.yaml") == cfg
+
+
+def test_interrupted_run_resumes_to_identical_parameters(cfg, full_run, tmp_path):
+    _, uninterrupted = full_run
+    run_dir = tmp_path / "interrupted"
+    first = trainmod.train(cfg, run_dir, stop_after_chunks=2, log=lambda _: None)
+    assert int(first.update) == 2
+    resumed = trainmod.train(cfg, run_dir, resume=True, log=lambda _: None)
+    assert int(resumed.update) == 3
+    assert _leaves_equal(resumed.params, uninterrupted.params)
+    assert _leaves_equal(resumed.opt_state, uninterrupted.opt_state)
+    lines = (run_dir / "metrics.jsonl").read_text().splitlines()
+    assert [json.loads(line)["update"] for line in lines] == [1, 2, 3]
+
+
+def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
+    run_dir, state = full_run
+    checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
+    restored = checkpoints.restore(trainer.init())
+    checkpoints.close()
+    assert int(restored.update) == int(state.update)
+    obs = _random_observations(jax.random.PRNGKey(3), trainer, batch=(8,))
+    memory = jnp.zeros((8, cfg.policy.width))
+    act = jax.jit(lambda params: ppo.apply_batched(trainer.network, params, memory, obs))
+    for a, b in zip(act(state.params), act(restored.params)):
+        assert np.array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
+    run_dir, _ = full_run
+    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32"])
+    template = trainmod.Trainer.build(wide).init()
+    checkpoints = Checkpoints(run_dir / "checkpoints", 3)
+    with pytest.raises(CheckpointError) as err:
+        checkpoints.restore(template)
+    checkpoints.close()
+    assert "\n" not in str(err.value)
+
+
+def _random_observations(key, trainer, batch):
+    """Observations with random features and masks (at least one feasible candidate)."""
+    example = trainmod.example_observation(trainer.env_params)
+    keys = iter(jax.random.split(key, 8))
+    draw = lambda x: jax.random.normal(next(keys), (*batch, *x.shape))
+    mask = jax.random.bernoulli(next(keys), 0.6, (*batch, *example.mask.shape))
+    mask = mask.at[..., 0].set(True)
+    return example.replace(features=draw(example.features), mask=mask,
+                           robot_state=draw(example.robot_state),
+                           global_state=draw(example.global_state))
+
+
+def test_ppo_loss_falls_on_a_fixed_batch(cfg, trainer):
+    state = trainer.init()
+    steps, envs, robots = 4, cfg.train.envs, cfg.robots.count
+    key_obs, key_act, key_reward = jax.random.split(jax.random.PRNGKey(0), 3)
+    obs = _random_observations(key_obs, trainer, (steps, envs, robots))
+    memory = jnp.zeros((steps, envs, robots, cfg.policy.width))
+    _, logits, value = ppo.apply_batched(trainer.network, state.params, memory, obs)
+    dist = ppo.distribution(logits, obs.mask)
+    action = dist.sample(seed=key_act)
+    batch = ppo.Transition(obs=obs, memory=memory, action=action,
+                           log_prob=dist.log_prob(action), value=value,
+                           reward=jax.random.normal(key_reward, value.shape),
+                           terminal=jnp.zeros(value.shape, bool).at[-1].set(True),
+                           active=jnp.ones(value.shape, bool))
+    last_value = jnp.zeros(batch.reward.shape[1:])
+    advantages, targets = ppo.gae(batch, last_value, cfg.ppo.discount, cfg.ppo.gae_lambda)
+    loss = jax.jit(lambda p: ppo.loss_fn(p, trainer.network, batch, advantages, targets,
+                                         cfg.ppo)[0])
+    update = jax.jit(lambda key, params, opt: ppo.update(
+        key, params, opt, trainer.network, trainer.optimizer, batch, last_value, cfg.ppo))
+    params, opt_state = state.params, state.opt_state
+    losses = [float(loss(params))]
+    for i in range(4):
+        params, opt_state, _ = update(jax.random.PRNGKey(10 + i), params, opt_state)
+        losses.append(float(loss(params)))
+    assert losses[-1] < losses[0]
+
+
+def test_gae_matches_a_hand_computed_example():
+    t = ppo.Transition(obs=None, memory=None, action=None, log_prob=None,
+                       value=jnp.array([[[1.0]], [[2.0]], [[0.5]]]),
+                       reward=jnp.array([[[1.0]], [[0.0]], [[2.0]]]),
+                       terminal=jnp.array([[[False]], [[True]], [[False]]]),
+                       active=jnp.ones((3, 1, 1), bool))
+    adv, targets = ppo.gae(t, jnp.array([[4.0]]), discount=0.5, lam=0.5)
+    # t=2: 2 + 0.5*4 - 0.5 = 3.5; t=1 (terminal): 0 - 2 = -2; t=0: 1 + 0.5*2 - 1 + 0.25*(-2) = 0.5
+    np.testing.assert_allclose(np.asarray(adv)[:, 0, 0], [0.5, -2.0, 3.5])
+    np.testing.assert_allclose(np.asarray(targets)[:, 0, 0], [1.5, 0.0, 4.0])
