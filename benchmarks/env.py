@@ -32,7 +32,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from common import emit, median_seconds  # noqa: E402
-from jaxmripp import baselines, candidates as cands, config, env as envmod, gp, sensing  # noqa: E402
+from jaxmripp import baselines, config, gp, sensing  # noqa: E402
+from jaxmripp import candidates as cands  # noqa: E402
+from jaxmripp import env as envmod  # noqa: E402
 
 
 def build(args):
@@ -82,30 +84,34 @@ def main() -> None:
     jax.block_until_ready(run())
     emit("env.step_compile_and_run_s", time.perf_counter() - start, "s", **common)
     # Warm-up steps move the robots off the start and fill the GPs a little.
+    cpu_start = time.process_time()
     seconds = median_seconds(run, repeats=args.repeats, warmup=2)
+    cpu_per_step = (time.process_time() - cpu_start) / (args.repeats + 2)
+    # On a shared machine the wall time depends on the load: the CPU time this process
+    # used per step and the load average at the end give the context.
     emit("env.agent_steps_per_s", envs * n / seconds, "agent-steps/s", **common,
-         step_s=round(seconds, 4))
+         step_s=round(seconds, 4), cpu_s_per_step=round(cpu_per_step, 4),
+         cores=os.cpu_count(), load_average=round(os.getloadavg()[0], 2))
     emit("env.env_steps_per_s", envs / seconds, "env-steps/s", **common)
     if args.no_parts:
         return
 
-    # Parts of the step, each on the same batch (the current state).
-    state = holder["state"]
+    # Parts of the step, each on the same batch (the current state). Parts that rewrite
+    # large state (occupancy maps, GPs) get it donated and fed back, like the step does.
     p = params
 
     def sensing_part(s):
         casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
             s.world, s.position, s.heading, p.sensor, p.size)
-        return jax.vmap(sensing.update_occupancy)(s.occupancy, casts), casts.seen
+        occupancy = jax.vmap(sensing.update_occupancy)(s.occupancy, casts)
+        return s.replace(occupancy=occupancy), casts.seen
 
     def gp_update_part(s):
         s, r_e, r_c = envmod._feed_gps(s, p)
-        return s.utility_gp, s.comm_gp, r_e, r_c
+        return s, r_e + r_c
 
     def gp_predict_part(s):
-        poses = jax.vmap(lambda c: jax.vmap(lambda q, h: jnp.concatenate(
-            [q, jnp.asarray(envmod.geometry.HEADING_ANGLES)[h][None]]))(c.position, c.heading))(
-            s.candidates)
+        poses = envmod.geometry.pose(s.candidates.position, s.candidates.heading)
         ugp = s.utility_gp if not p.gp.shared_utility else jax.tree.map(
             lambda x: jnp.broadcast_to(x, (n, *x.shape[1:])), s.utility_gp)
         predict = jax.vmap(gp.predict, in_axes=(0, 0, None))
@@ -114,19 +120,26 @@ def main() -> None:
     def candidates_part(s, key):
         k = jax.random.split(key, n)
         contact = envmod.comms.contacts(s.position, p.radio.range)
-        return jax.vmap(cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
+        return jax.vmap(cands.sample,
+                           in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
             k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
             p.candidates, p.robots, p.radio.collision_distance, p.size)
 
-    parts = {
-        "sensing": (jax.jit(jax.vmap(sensing_part)), (state,)),
-        "gp_update": (jax.jit(jax.vmap(gp_update_part)), (state,)),
-        "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), (state,)),
-        "candidates": (jax.jit(jax.vmap(candidates_part)), (state, keys)),
+    parts = {  # name: (function, donates and returns the state, extra arguments)
+        "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),
+        "gp_update": (jax.jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
+        "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), False, ()),
+        "candidates": (jax.jit(jax.vmap(candidates_part)), False, (keys,)),
     }
     part_seconds = {}
-    for name, (fn, fn_args) in parts.items():
-        part_seconds[name] = median_seconds(lambda: fn(*fn_args), repeats=args.repeats)
+    for name, (fn, donated, extra) in parts.items():
+        def run_part():
+            if not donated:
+                return fn(holder["state"], *extra)
+            holder["state"], out = fn(holder["state"], *extra)
+            return out
+
+        part_seconds[name] = median_seconds(run_part, repeats=args.repeats)
         emit(f"env.part_{name}_s", part_seconds[name], "s", **common)
     # Re-time the whole step after the parts, and use the mean of both step timings, so
     # that load changes on a shared machine during the run bias the shares less.

@@ -79,22 +79,39 @@ def _sequential(choose: Callable, carry, n_robots: int) -> jax.Array:
     return actions
 
 
-def coordinated_planner(params, kappa: float = 1.0, lam: float = 1.0, mu: float = 1.0,
-                        name: str = "coordinated") -> Planner:
+def novelty_scores(obs: Observation, kappa: float, lam: float,
+                   variance: float = 1.0) -> jax.Array:
+    """Expected new windows: mean * (std^2 / prior variance) + kappa * std - lam * comm mean.
+
+    The utility GP predicts how many windows a pose sees, not how many it sees first; the
+    posterior variance (relative to the prior, 1 with the default GP) is small near poses
+    the robot or its peers already visited, so it discounts windows that were likely seen.
+    """
+    f = obs.features
+    std = f[..., UTILITY_STD]
+    novelty = std * std / variance
+    return f[..., UTILITY_MEAN] * novelty + kappa * std - lam * f[..., COMM_MEAN]
+
+
+def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float = 0.3,
+                        novelty: bool = True, name: str = "coordinated") -> Planner:
     """Greedy with sequential allocation among robots that hear each other.
 
-    Score = utility mean + kappa * std - lam * communication-GP mean (regions peers
-    explored) - mu * max correlation (the GP kernel / variance) with the poses that peers
-    within radio range already chose this step. Robots choose in index order; robot i sees
-    the choices of robots j < i it can hear, and never picks a position within the
-    collision distance d_c of one of them unless nothing else is feasible.
+    Score = `novelty_scores` (or, with novelty=False, the UCB of `greedy_scores`), which
+    subtracts lam * communication-GP mean (regions peers explored), minus mu * the largest
+    correlation (GP kernel / variance) with the poses that peers within radio range
+    already chose this step. Robots choose in index order; robot i sees the choices of the
+    robots j < i it can hear, and never picks a position within the collision distance
+    d_c of one of them unless nothing else is feasible.
     """
     gp_cfg, d_c, rho = params.gp, params.radio.collision_distance, params.radio.range
+    score_fn = (lambda obs, k, l: novelty_scores(obs, k, l, gp_cfg.variance)) if novelty \
+        else greedy_scores
 
     def act(key, memory, obs, state):
         n = obs.mask.shape[0]
         jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
-        base = greedy_scores(obs, kappa, lam) + jitter
+        base = score_fn(obs, kappa, lam) + jitter
         poses = geometry.pose(state.candidates.position, state.candidates.heading)  # (N, L, 4)
         hears = comms.contacts(state.position, rho)
 

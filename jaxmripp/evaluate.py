@@ -370,8 +370,8 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "greedy":
         return baselines.greedy_planner(kappa, get("greedy_lambda"))
     if name == "coordinated":
-        return baselines.coordinated_planner(params, kappa, get("coordinated_lambda"),
-                                             get("coordinated_mu"))
+        return baselines.coordinated_planner(params, get("coordinated_kappa"),
+                                             get("coordinated_lambda"), get("coordinated_mu"))
     if name == "oracle":
         return baselines.oracle_planner(params)
     if name == "mcts":
@@ -389,8 +389,9 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
 EVAL_DEFAULTS = {
     "greedy_kappa": 1.0,
     "greedy_lambda": 0.0,
-    "coordinated_lambda": 1.0,
-    "coordinated_mu": 1.0,
+    "coordinated_kappa": 0.3,
+    "coordinated_lambda": 0.0,
+    "coordinated_mu": 0.3,
     "mcts_simulations": 16,
     "mcts_depth": 2,
     "mcts_considered": 4,

@@ -42,6 +42,7 @@ class Runner:
     env_state: envmod.EnvState  # (E, ...)
     obs: Observation  # (E, N, ...)
     memory: jax.Array  # (E, N, W)
+    episode_return: jax.Array  # (E, N) reward summed since the episode started
 
 
 @struct.dataclass
@@ -79,7 +80,7 @@ def start_runner(key, cfg: Config, params: EnvParams) -> Runner:
         jax.random.split(key, cfg.train.envs), params)
     memory = jnp.broadcast_to(initial_memory(cfg.policy),
                               (cfg.train.envs, params.n_robots, cfg.policy.width))
-    return Runner(state, obs, memory)
+    return Runner(state, obs, memory, jnp.zeros((cfg.train.envs, params.n_robots)))
 
 
 def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
@@ -91,8 +92,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         jax.random.split(key_pool, envs), params)
     step = jax.vmap(envmod.step_auto_reset, in_axes=(0, 0, 0, None, 0, 0))
 
-    def body(carry, key):
-        runner, ret = carry
+    def body(runner, key):
         key_act, key_env = jax.random.split(key)
         memory, logits, value = apply_batched(network, net_params, runner.memory, runner.obs)
         dist = distribution(logits, runner.obs.mask)
@@ -104,7 +104,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
             reset_state)
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
-        ret = ret + reward
+        ret = runner.episode_return + reward
         final_discovered = info.discovered_fraction
         stats = (ended.sum(), (final_discovered * ended).sum(),
                  (ret.mean(axis=1) * ended).sum(),
@@ -114,11 +114,10 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
                                 terminal, active)
-        return (Runner(state, obs, memory), ret), (transition, stats)
+        return Runner(state, obs, memory, ret), (transition, stats)
 
-    ret0 = jnp.zeros((envs, params.n_robots))
-    (runner, _), (transitions, stats) = jax.lax.scan(
-        body, (runner, ret0), jax.random.split(key_steps, cfg.train.rollout_steps))
+    runner, (transitions, stats) = jax.lax.scan(
+        body, runner, jax.random.split(key_steps, cfg.train.rollout_steps))
     ended, discovered, returns, parts, acted = stats
     weights = acted[:, None, :]
     summary = RolloutStats(

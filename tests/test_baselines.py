@@ -56,7 +56,8 @@ def test_coordinated_skips_what_a_heard_peer_chose(radio_range, expect_second):
     state = types.SimpleNamespace(candidates=_candidates(positions),
                                   position=jnp.full((2, 3), 0.5, jnp.float32))
     obs = _observation(utility, jnp.ones((2, 3), bool))
-    planner = baselines.coordinated_planner(_params(radio_range), kappa=0.0, lam=0.0, mu=1.0)
+    planner = baselines.coordinated_planner(_params(radio_range), kappa=0.0, lam=0.0, mu=1.0,
+                                              novelty=False)
     assert _act(planner, obs, state).tolist() == [0, expect_second]  # out of radio range: no coordination
 
 
@@ -66,7 +67,8 @@ def test_coordinated_falls_back_when_everything_is_crowded():
                                   position=jnp.full((2, 3), 0.5, jnp.float32))
     mask = jnp.array([[True, True, True], [True, True, False]])
     obs = _observation([[1.0, 0.9, 0.5]] * 2, mask)
-    planner = baselines.coordinated_planner(_params(), kappa=0.0, lam=0.0, mu=0.0)
+    planner = baselines.coordinated_planner(_params(), kappa=0.0, lam=0.0, mu=0.0,
+                                              novelty=False)
     assert _act(planner, obs, state).tolist() == [0, 0]  # the only feasible poses are crowded: still act
 
 
@@ -137,3 +139,11 @@ def test_tree_search_beats_random(ranking):
 def test_oracle_at_least_greedy(ranking):
     assert ranking["oracle"].mean() >= ranking["greedy"].mean()
     assert ranking["oracle"].mean() >= ranking["mcts"].mean()
+
+
+def test_novelty_scores_discount_seen_regions():
+    obs = _observation([[2.0, 2.0, 0.0]], jnp.ones((1, 3), bool))
+    std = FEATURES.index("utility_std")
+    obs = obs.replace(features=obs.features.at[0, :, std].set(jnp.array([1.0, 0.5, 1.0])))
+    scores = baselines.novelty_scores(obs, kappa=0.3, lam=0.0)
+    np.testing.assert_allclose(scores[0], [2.0 + 0.3, 2.0 * 0.25 + 0.15, 0.3], rtol=1e-6)
