@@ -4,7 +4,8 @@ Default setting (issue 4): N = 3 robots, G = 50, L = 80 candidates, 1024 environ
 everything on (ray-cast sensing with occlusion, per-robot utility and communication GPs,
 radio exchange at rho = 0.3, rewards). The step (random action choice + `env.step`) is
 jitted over the vmapped batch with the state donated; `env.agent_steps_per_s` is
-envs x robots / the median step time.
+envs x robots / the median step time (wall clock; on a shared machine it moves with the
+load, so the CPU time per step and `env.agent_steps_per_cpu_s` are printed too).
 
 The same run times the step's parts separately on the same batch, each jitted and
 vmapped alone (they are not donated, so each also pays for copying its outputs):
@@ -93,6 +94,10 @@ def main() -> None:
          step_s=round(seconds, 4), cpu_s_per_step=round(cpu_per_step, 4),
          cores=os.cpu_count(), load_average=round(os.getloadavg()[0], 2))
     emit("env.env_steps_per_s", envs / seconds, "env-steps/s", **common)
+    # Less sensitive to other processes than wall time: agent-steps per CPU-second used
+    # (XLA runs parts of a step on several threads, so wall throughput on an idle machine
+    # can exceed it).
+    emit("env.agent_steps_per_cpu_s", envs * n / cpu_per_step, "agent-steps/cpu-s", **common)
     if args.no_parts:
         return
 

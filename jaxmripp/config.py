@@ -118,6 +118,7 @@ class PolicyConfig:
     heads: int = 4
     layers: int = 1
     ff_mult: int = 4
+    comm_features: bool = True  # False: ablation without communication-GP inputs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -162,6 +163,19 @@ class EvalConfig:
     layout: str = "random"
     greedy_kappa: float = 1.0  # tuned on training-layout worlds: see README
     greedy_lambda: float = 0.0
+    coordinated_kappa: float = 0.3
+    coordinated_lambda: float = 0.0
+    coordinated_mu: float = 0.3
+    mcts_simulations: int = 16
+    mcts_depth: int = 2
+    mcts_considered: int = 4
+    mcts_kappa: float = 0.3
+    budget_mode: str = "team"  # team: budgets are team budgets | per_robot
+    zip_with_size: tuple[str, ...] = ()  # lists that pair element-wise with world_sizes
+    pairs: tuple[str, ...] = ()  # Welch t-tests, each "a:b"
+    batch: int = 0  # episodes per vmapped call; 0 sizes it to memory
+    time_planning: bool = True
+    render: bool = True
 
 
 @dataclasses.dataclass(frozen=True)
@@ -287,6 +301,20 @@ RULES: dict[str, tuple] = {
     "eval.layout": _choice("grid", "random"),
     "eval.greedy_kappa": _NONNEG,
     "eval.greedy_lambda": _NONNEG,
+    "eval.coordinated_kappa": _NONNEG,
+    "eval.coordinated_lambda": _NONNEG,
+    "eval.coordinated_mu": _NONNEG,
+    "eval.mcts_simulations": _range(1, 4096),
+    "eval.mcts_depth": _range(1, 64),
+    "eval.mcts_considered": _range(1, 512),
+    "eval.mcts_kappa": _NONNEG,
+    "eval.budget_mode": _choice("team", "per_robot"),
+    "eval.zip_with_size": (lambda v: all(x in ("team_sizes", "radio_ranges", "budgets")
+                                         for x in v),
+                           "a list from team_sizes, radio_ranges, budgets"),
+    "eval.pairs": (lambda v: all(x.count(":") == 1 and all(x.split(":")) for x in v),
+                   'a list of "a:b" planner pairs'),
+    "eval.batch": _range(0, 10**6),
 }
 PLANNERS = ("policy", "random", "greedy", "coordinated", "mcts", "oracle")
 
@@ -315,6 +343,11 @@ def _cross_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))
+    for name in cfg.eval.zip_with_size:
+        if len(getattr(cfg.eval, name)) != len(cfg.eval.world_sizes):
+            problems.append((f"eval.{name}", getattr(cfg.eval, name),
+                             f"one entry per world size ({len(cfg.eval.world_sizes)}), "
+                             "because eval.zip_with_size pairs them"))
     if cfg.train.updates % cfg.train.updates_per_chunk:
         problems.append(("train.updates", cfg.train.updates,
                          f"a multiple of train.updates_per_chunk = {cfg.train.updates_per_chunk}"))

@@ -31,13 +31,21 @@ class EpisodeResult:
     robot_collisions: jax.Array  # ()
     distance: jax.Array  # () team path length
     contacts: jax.Array  # ()
+    found_at: jax.Array  # (T_targets,) int32 step each window was found: 0 at reset, -1 never
     final_state: envmod.EnvState
     trajectory: Trajectory
 
 
-def run(key: jax.Array, params: EnvParams, planner: Planner) -> EpisodeResult:
-    """Resets a world from `key` and lets `planner` act until T_max steps have passed."""
-    key_reset, key_run = jax.random.split(key)
+def run(key: jax.Array, params: EnvParams, planner: Planner,
+        world_key: jax.Array | None = None) -> EpisodeResult:
+    """Resets a world and lets `planner` act until T_max steps have passed.
+
+    The world (and budget, first candidates) come from `world_key` when given, so several
+    trials can share one world; otherwise both world and trial are drawn from `key`.
+    """
+    if world_key is None:
+        world_key, key = jax.random.split(key)
+    key_reset, key_run = world_key, key
     obs, state = envmod.reset(key_reset, params)
     memory = planner.init(params.n_robots)
     team_budget = state.budget_initial * params.n_robots
@@ -51,11 +59,11 @@ def run(key: jax.Array, params: EnvParams, planner: Planner) -> EpisodeResult:
         memory, actions = planner.act(key_act, memory, obs, state)
         obs, state, reward, _, info = envmod.step(key_step, state, actions, params)
         out = (state.position, state.heading, info.acted, info.discovered_fraction,
-               spent(state), reward)
+               spent(state), reward, state.discovered)
         return (obs, state, memory), out
 
     keys = jax.random.split(key_run, params.max_steps)
-    (_, final, _), (pos, head, acted, frac, used, reward) = jax.lax.scan(
+    (_, final, _), (pos, head, acted, frac, used, reward, found) = jax.lax.scan(
         body, (obs, state, memory), keys)
     trajectory = Trajectory(
         position=jnp.concatenate([state.position[None], pos]),
@@ -66,6 +74,8 @@ def run(key: jax.Array, params: EnvParams, planner: Planner) -> EpisodeResult:
         reward=reward,
     )
     m = final.metrics
+    first = jnp.argmax(found, axis=0) + 1
+    found_at = jnp.where(state.discovered, 0, jnp.where(final.discovered, first, -1))
     return EpisodeResult(
         discovered_fraction=envmod.discovered_fraction(final),
         steps=jnp.any(acted, axis=1).sum(),
@@ -73,6 +83,7 @@ def run(key: jax.Array, params: EnvParams, planner: Planner) -> EpisodeResult:
         robot_collisions=m.robot_collisions.sum(),
         distance=m.distance.sum(),
         contacts=m.contacts,
+        found_at=found_at.astype(jnp.int32),
         final_state=final,
         trajectory=trajectory,
     )

@@ -1,14 +1,21 @@
-"""Evaluation: many episodes per planner in one vmapped, jitted call, and tables.
+"""Evaluation: many episodes per planner in one vmapped, jitted call, and statistics.
 
 Worlds come from fixed seeds: episode k of every planner uses the same key, hence the
 same world and budget, so planners are compared on identical problems.
+
+- `compare` / `summary_table` / `tune_greedy`: the quick comparison `pipeline.report` runs
+  after training (one key per episode, world and trial randomness together).
+- `run_shape`: the sweep primitive. World w comes from the key (seed, w) and trial t on it
+  from (seed, w, t) (`world_keys`, `trial_keys`, `run_trial`), so worlds x trials of one
+  planner on one `Shape` (N, G, rho, B) are compiled once and run in memory-sized chunks;
+  `jaxmripp.sweep` loops it over a config's eval section and writes the outputs.
+- `baseline_planner`: non-learning planners by name; `welch_ttest`, `mean_ci`: statistics.
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
-import functools
 import functools
 import math
 import time
@@ -181,54 +188,11 @@ class Snapshot:
 
 def run_trial(world_key: jax.Array, trial_key: jax.Array, params: EnvParams,
               planner: Planner) -> tuple[episode.EpisodeResult, Snapshot]:
-    """One episode on the world of `world_key`, with randomness from `trial_key`.
-
-    Same scan as `episode.run` (which derives world and trial from a single key), plus
-    the step at which each window was found, for pictures.
-    """
-    obs, state = envmod.reset(world_key, params)
-    memory = planner.init(params.n_robots)
-    team_budget = state.budget_initial * params.n_robots
-
-    def spent(s):
-        return 1.0 - s.budget_left.sum() / team_budget
-
-    def body(carry, key):
-        obs, state, memory = carry
-        key_act, key_step = jax.random.split(key)
-        memory, actions = planner.act(key_act, memory, obs, state)
-        obs, state, reward, _, info = envmod.step(key_step, state, actions, params)
-        out = (state.position, state.heading, info.acted, info.discovered_fraction,
-               spent(state), reward, state.discovered)
-        return (obs, state, memory), out
-
-    keys = jax.random.split(trial_key, params.max_steps)
-    (_, final, _), (pos, head, acted, frac, used, reward, found) = jax.lax.scan(
-        body, (obs, state, memory), keys)
-    trajectory = episode.Trajectory(
-        position=jnp.concatenate([state.position[None], pos]),
-        heading=jnp.concatenate([state.heading[None], head]),
-        active=acted,
-        discovered_fraction=jnp.concatenate([envmod.discovered_fraction(state)[None], frac]),
-        budget_used=jnp.concatenate([spent(state)[None], used]),
-        reward=reward,
-    )
-    m = final.metrics
-    result = episode.EpisodeResult(
-        discovered_fraction=envmod.discovered_fraction(final),
-        steps=jnp.any(acted, axis=1).sum(),
-        obstacle_collisions=m.obstacle_collisions.sum(),
-        robot_collisions=m.robot_collisions.sum(),
-        distance=m.distance.sum(),
-        contacts=m.contacts,
-        final_state=None,
-        trajectory=trajectory,
-    )
-    first = jnp.argmax(found, axis=0) + 1
-    found_at = jnp.where(state.discovered, 0, jnp.where(final.discovered, first, -1))
-    world = state.world
-    return result, Snapshot(world.height, world.target_voxel, world.target_valid,
-                            found_at.astype(jnp.int32))
+    """One episode on the world of `world_key`, with randomness from `trial_key`."""
+    result = episode.run(trial_key, params, planner, world_key=world_key)
+    world = result.final_state.world
+    return result.replace(final_state=None), Snapshot(
+        world.height, world.target_voxel, world.target_valid, result.found_at)
 
 
 def auto_batch(params: EnvParams, memory_bytes: float = 1.5e9) -> int:

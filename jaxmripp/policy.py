@@ -41,7 +41,7 @@ import numpy as np
 from flax import traverse_util
 
 from jaxmripp.config import PolicyConfig
-from jaxmripp.observation import Observation
+from jaxmripp.observation import FEATURES, Observation
 
 # Pointer-network logit clipping (Bello et al. 2017): bounded logits keep the policy
 # from collapsing early and bound the PPO ratio's sensitivity to the pointer weights.
@@ -153,6 +153,8 @@ class ActorCritic(nn.Module):
         # the env may pad them with anything; zeroing keeps non-finite padding out of the
         # 0 * value products of the attention.
         features = jnp.where(mask[:, None], features, 0.0)
+        if not self.config.comm_features:  # ablation: the policy never sees the comm GP
+            features = features * jnp.asarray(feature_keep(False), features.dtype)
 
         # Encoder: candidates attend to each other (feasible ones only as keys).
         encoded = nn.Dense(width, name="embed")(features)  # (L, W)
@@ -215,4 +217,11 @@ def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
         "layers": config.layers,
         "ff_mult": config.ff_mult,
         "central_critic": central_critic,
+        "comm_features": config.comm_features,
     }
+
+
+def feature_keep(comm_features: bool):
+    """(F,) 1/0 multipliers: zero the communication-GP columns when they are ablated."""
+    return [0.0 if (not comm_features and name.startswith("comm_")) else 1.0
+            for name in FEATURES]

@@ -17,7 +17,9 @@ jaxmripp.config does not define them):
 - pairs: "a:b" planner pairs to compare with Welch's t-test in every shape (default: the
   first planner against each other one);
 - batch: episodes per vmapped call (0: sized to memory, evaluate.auto_batch);
-- time_planning: also time planner.act alone; render: pictures and GIFs.
+- time_planning: also time planner.act alone; render: pictures and GIFs;
+- coordinated_kappa / _lambda / _mu and mcts_simulations / _depth / _considered / _kappa:
+  the baselines' knobs (see baselines.coordinated_planner, tree_search).
 """
 
 from __future__ import annotations

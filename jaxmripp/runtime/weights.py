@@ -37,27 +37,13 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
+from jaxmripp.runtime.layout import FEATURES, ROBOT_STATE
 from jaxmripp.runtime.policy import NumpyPolicy
 
 FORMAT = "jaxmripp-policy"
 FORMAT_VERSION = 1
 WEIGHTS_FILE = "policy.npz"
 HEADER_FILE = "policy.json"
-
-# Must equal jaxmripp.observation.FEATURES / ROBOT_STATE (redefined: that module imports
-# jax; tests/test_runtime.py checks that the two stay equal).
-FEATURES = (
-    "dx", "dy", "dz", "x", "y", "z",
-    "heading_0", "heading_1", "heading_2", "heading_3",
-    "utility_mean", "utility_std", "comm_mean", "comm_std",
-    "cost", "budget_after",
-)  # fmt: skip
-ROBOT_STATE = (
-    "x", "y", "z",
-    "heading_0", "heading_1", "heading_2", "heading_3",
-    "budget_left", "step",
-)  # fmt: skip
-
 
 # ---------------------------------------------------------------------------------------
 # What the planner needs from a config
