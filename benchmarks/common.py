@@ -27,3 +27,14 @@ def median_seconds(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> 
         jax.block_until_ready(fn())
         times.append(time.perf_counter() - start)
     return statistics.median(times)
+
+
+def median_cpu_seconds(fn: Callable[[], Any], repeats: int = 5) -> float:
+    """Median process CPU time (all threads) of fn(), already compiled; steadier than wall
+    time when other work shares the machine."""
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        jax.block_until_ready(fn())
+        times.append(time.process_time() - start)
+    return statistics.median(times)

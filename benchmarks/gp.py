@@ -49,7 +49,7 @@ def incremental_step(states, poses, values, queries, eval_poses, cfg):
 def _refactor_one(buffer, pose, value, queries, eval_poses, cfg):
     """Writes the point into the ring buffer, then factorises K + noise I from scratch."""
     inputs, targets, valid, count = buffer
-    h, slot = cfg.capacity, count % cfg.capacity
+    slot = count % cfg.capacity
     inputs, targets = inputs.at[slot].set(pose), targets.at[slot].set(value)
     valid = valid.at[slot].set(True)
     gram = jnp.where(valid[:, None] & valid[None, :], gp.kernel(inputs, inputs, cfg), 0.0)

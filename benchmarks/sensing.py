@@ -9,9 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
-import statistics
 import sys
-import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
@@ -19,7 +17,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import emit, median_seconds  # noqa: E402
+from common import emit, median_cpu_seconds, median_seconds  # noqa: E402
 from jaxmripp import sensing, world  # noqa: E402
 from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
 
@@ -32,16 +30,6 @@ def sense_step(worlds, position, heading, occupancy, sensor, size):
         return jax.vmap(sensing.update_occupancy)(occ, casts), sensing.utility(casts)
 
     return jax.vmap(per_env)(worlds, position, heading, occupancy)
-
-
-def median_cpu_seconds(fn, repeats: int) -> float:
-    """Median process CPU time (all threads) of fn(), already compiled."""
-    times = []
-    for _ in range(repeats):
-        start = time.process_time()
-        jax.block_until_ready(fn())
-        times.append(time.process_time() - start)
-    return statistics.median(times)
 
 
 def main() -> None:

@@ -94,7 +94,7 @@ class GPConfig:
     heading_scale: float = 0.1  # distance added per radian of heading difference
     variance: float = 1.0
     noise: float = 0.01
-    eval_grid: int = 4  # trace evaluation set: eval_grid^3 positions x 4 headings
+    eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
     catchup_per_peer: int = 2  # radio-learned poses ingested per peer and step
     shared_utility: bool = False  # one utility GP per environment fed by all robots
 

@@ -17,15 +17,6 @@ from matplotlib import animation  # noqa: E402
 from jaxmripp import viz  # noqa: E402
 
 
-def _save(fig, path) -> Path:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
 def discovery_vs_budget(path, runs: dict, title: str = "", points: int = 41) -> Path:
     """% targets discovered against the fraction of the team budget used: mean and a
     +-1 std band per planner. runs: {planner: ShapeRun} of one shape."""
@@ -42,7 +33,7 @@ def discovery_vs_budget(path, runs: dict, title: str = "", points: int = 41) -> 
            title=title or None)
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
-    return _save(fig, path)
+    return viz.save_figure(fig, path)
 
 
 def discovery_vs_team_size(path, runs: list) -> Path:
@@ -66,7 +57,7 @@ def discovery_vs_team_size(path, runs: list) -> Path:
         ax.set(xlabel="robots N", ylabel="% targets discovered", title=f"G = {size}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
-    return _save(fig, path)
+    return viz.save_figure(fig, path)
 
 
 def _episode(run, index: int):

@@ -13,6 +13,17 @@ import numpy as np  # noqa: E402
 ROBOT_COLOURS = plt.get_cmap("tab10").colors
 
 
+def save_figure(fig, path, tight: bool = True) -> Path:
+    """Writes fig as a PNG (creating folders) and closes it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if tight:
+        fig.tight_layout()
+    fig.savefig(path, dpi=110, bbox_inches=None if tight else "tight")
+    plt.close(fig)
+    return path
+
+
 def render_episode(path: str | Path, height, target_voxel, target_valid, discovered,
                    positions, active, radio_range: float, title: str = "") -> Path:
     """Saves a 3D picture: buildings, windows found (green) / missed (red), paths, radio links.
@@ -54,11 +65,7 @@ def render_episode(path: str | Path, height, target_voxel, target_valid, discove
     ax.set(xlim=(0, 1), ylim=(0, 1), zlim=(0, 1), xlabel="x", ylabel="y", zlabel="z")
     ax.set_title(title or "episode")
     ax.legend(loc="upper left", fontsize=7)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110, bbox_inches="tight")
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, tight=False)
 
 
 def render_result(path, result, radio_range: float, title: str = "") -> Path:
@@ -80,14 +87,9 @@ def learning_curve(path, records: list[dict], keys=("discovered", "return")) -> 
         if points:
             x, y = zip(*points)
             ax.plot(x, y, "-o", markersize=3)
-        ax.set(xlabel="environment steps", ylabel=key, title=key)
+        ax.set(xlabel="agent steps (robot decisions)", ylabel=key, title=key)
         ax.grid(alpha=0.3)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def discovery_curves(path, results: dict[str, dict]) -> Path:
@@ -103,9 +105,4 @@ def discovery_curves(path, results: dict[str, dict]) -> Path:
     ax.set(xlabel="fraction of team budget used", ylabel="% targets discovered")
     ax.grid(alpha=0.3)
     ax.legend()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)

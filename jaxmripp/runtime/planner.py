@@ -43,7 +43,7 @@ from jaxmripp.runtime.gp import GaussianProcess
 from jaxmripp.runtime.mapping import (HEADING_ANGLES, N_HEADINGS, OCCUPIED, OccupancyMap,
                                       segment_points, segment_samples, voxel_of)
 from jaxmripp.runtime.policy import NumpyPolicy
-from jaxmripp.runtime.weights import FEATURES, ROBOT_STATE, RuntimeSpec
+from jaxmripp.runtime.weights import FEATURES, RuntimeSpec
 
 F32 = np.float32
 COL = {name: i for i, name in enumerate(FEATURES)}
