@@ -96,7 +96,10 @@ def _random_observations(key, trainer, batch):
                            global_state=draw(example.global_state))
 
 
-def test_ppo_loss_falls_on_a_fixed_batch(cfg, trainer):
+@pytest.mark.parametrize("algo", ["ippo", "mappo"])
+def test_ppo_loss_falls_on_a_fixed_batch(algo):
+    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.algo={algo}"])
+    trainer = trainmod.Trainer.build(cfg)
     state = trainer.init()
     steps, envs, robots = 4, cfg.train.envs, cfg.robots.count
     key_obs, key_act, key_reward = jax.random.split(jax.random.PRNGKey(0), 3)
