@@ -7,11 +7,12 @@ the state donated. The refactorising baseline does the same work from the same r
 buffer with a Cholesky factorisation and one triangular solve per GP and step. Both run in
 this process, so their ratio is meaningful on a shared, noisy machine.
 
-Usage (from the repository root): python benchmarks/gp.py
+Usage (from the repository root): python benchmarks/gp.py [--eval-grid 4]
 """
 
 from __future__ import annotations
 
+import argparse
 import itertools
 import statistics
 import sys
@@ -82,7 +83,10 @@ def runner(step, state, inputs, eval_poses, cfg):
 
 
 def main():
-    cfg = GPConfig()
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--eval-grid", type=int, default=GPConfig().eval_grid,
+                        help="trace evaluation set: eval_grid^3 positions x 4 headings")
+    cfg = GPConfig(eval_grid=parser.parse_args().eval_grid)
     eval_poses = gp.evaluation_poses(cfg)
     rng = np.random.default_rng(0)
 

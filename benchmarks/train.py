@@ -1,6 +1,6 @@
 """Training throughput: rollout (env + policy) vs policy alone, and PPO update speed.
 
-python benchmarks/train.py [--envs 1024] [--steps 4] [section.key=value ...]
+python benchmarks/train.py [--envs 1024] [--steps 16] [section.key=value ...]
 Prints JSON lines; all figures come from one run, so their ratio is meaningful.
 """
 
@@ -23,8 +23,8 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--envs", type=int, default=1024)
-    parser.add_argument("--steps", type=int, default=4, help="rollout steps timed per call")
-    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--steps", type=int, default=16, help="rollout steps timed per call")
+    parser.add_argument("--repeats", type=int, default=2)
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
