@@ -43,12 +43,15 @@ def main() -> None:
 
     @jax.jit
     def policy_only(key, params, memory, obs):
-        def body(carry, key):
-            memory = carry
-            memory, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
-            action = ppo.distribution(logits, obs.mask).sample(seed=key)
+        def body(memory, step):
+            key, t = step
+            # A step-dependent input, so XLA cannot hoist the encoder out of the loop.
+            stepped = obs.replace(features=obs.features + 1e-6 * t)
+            memory, logits, value = ppo.apply_batched(trainer.network, params, memory, stepped)
+            action = ppo.distribution(logits, stepped.mask).sample(seed=key)
             return memory, (action, value)
-        return jax.lax.scan(body, memory, jax.random.split(key, args.steps))
+        steps = jnp.arange(args.steps, dtype=jnp.float32)
+        return jax.lax.scan(body, memory, (jax.random.split(key, args.steps), steps))
 
     seconds_policy = median_seconds(
         lambda: policy_only(jax.random.PRNGKey(2), state.params, runner.memory, runner.obs),
