@@ -18,23 +18,12 @@ from __future__ import annotations
 import flax.struct
 import jax
 
-# Per-candidate features. dx, dy, dz: offset from the robot; x, y, z: absolute position;
-# heading_*: one-hot of the candidate's heading; utility_* / comm_*: posterior mean and
-# standard deviation of the utility and communication GPs at the candidate; cost: path
-# cost of moving there; budget_after: budget left after the move.
-FEATURES = (
-    "dx", "dy", "dz", "x", "y", "z",
-    "heading_0", "heading_1", "heading_2", "heading_3",
-    "utility_mean", "utility_std", "comm_mean", "comm_std",
-    "cost", "budget_after",
-)  # fmt: skip
-
-# The robot's own state: position, one-hot heading, budget left, step counter.
-ROBOT_STATE = (
-    "x", "y", "z",
-    "heading_0", "heading_1", "heading_2", "heading_3",
-    "budget_left", "step",
-)  # fmt: skip
+# The layout is defined once, next to the exported file format, in the NumPy-only runtime
+# (which must not import this module). FEATURES per candidate: dx, dy, dz offset from the
+# robot; x, y, z absolute position; one-hot heading; posterior mean and standard deviation
+# of the utility and communication GPs; path cost; budget left after the move.
+# ROBOT_STATE: position, one-hot heading, budget left, step counter.
+from jaxmripp.runtime.layout import FEATURES, ROBOT_STATE  # noqa: E402
 
 N_FEATURES = len(FEATURES)  # F = 16
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9

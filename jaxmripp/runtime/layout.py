@@ -1,7 +1,6 @@
 """The policy's input layout, shared by the exporter's header check and the runtime."""
 
-# Must equal jaxmripp.observation.FEATURES / ROBOT_STATE (redefined: that module imports
-# jax; tests/test_runtime.py checks that the two stay equal).
+# The one definition: jaxmripp.observation re-exports these for the JAX side.
 FEATURES = (
     "dx", "dy", "dz", "x", "y", "z",
     "heading_0", "heading_1", "heading_2", "heading_3",
