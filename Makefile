@@ -22,7 +22,8 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -x
 
 bench: $(STAMP)
-	for b in benchmarks/*.py; do $(BIN)/python $$b || exit 1; done
+	for b in sensing gp env runtime; do $(BIN)/python benchmarks/$$b.py || exit 1; done
+	$(BIN)/python benchmarks/train.py --envs 256
 
 clean:
 	rm -rf $(VENV) runs
