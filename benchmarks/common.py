@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import statistics
 import sys
@@ -38,3 +39,13 @@ def median_cpu_seconds(fn: Callable[[], Any], repeats: int = 5) -> float:
         jax.block_until_ready(fn())
         times.append(time.process_time() - start)
     return statistics.median(times)
+
+
+def batch_arguments(description: str) -> argparse.ArgumentParser:
+    """The batch-shape options shared by the environment-side benchmarks."""
+    parser = argparse.ArgumentParser(description=description)
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--robots", type=int, default=3)
+    parser.add_argument("--size", type=int, default=50)
+    parser.add_argument("--repeats", type=int, default=5)
+    return parser

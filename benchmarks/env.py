@@ -21,7 +21,6 @@ Usage (from the repository root): python benchmarks/env.py [--envs 1024] [--robo
 
 from __future__ import annotations
 
-import argparse
 import os
 import sys
 import time
@@ -32,7 +31,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import emit, median_seconds  # noqa: E402
+from common import batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp import baselines, config, gp, sensing  # noqa: E402
 from jaxmripp import candidates as cands  # noqa: E402
 from jaxmripp import env as envmod  # noqa: E402
@@ -45,11 +44,7 @@ def build(args):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--envs", type=int, default=1024)
-    parser.add_argument("--robots", type=int, default=3)
-    parser.add_argument("--size", type=int, default=50)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser = batch_arguments(__doc__)
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
     parser.add_argument("--no-parts", action="store_true", help="skip the per-part timings")
     args = parser.parse_args()

@@ -6,7 +6,6 @@ Prints JSON lines; `sensing.robot_casts_per_s` is the default ray-cast camera.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import sys
@@ -17,7 +16,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import emit, median_cpu_seconds, median_seconds  # noqa: E402
+from common import batch_arguments, emit, median_cpu_seconds, median_seconds  # noqa: E402
 from jaxmripp import sensing, world  # noqa: E402
 from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
 
@@ -33,11 +32,7 @@ def sense_step(worlds, position, heading, occupancy, sensor, size):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--envs", type=int, default=1024)
-    parser.add_argument("--robots", type=int, default=3)
-    parser.add_argument("--size", type=int, default=50)
-    parser.add_argument("--repeats", type=int, default=5)
+    parser = batch_arguments(__doc__)
     args = parser.parse_args()
     size, envs, robots = args.size, args.envs, args.robots
 

@@ -84,10 +84,7 @@ def episode_gif(path, run, index: int = 0, fps: int = 3) -> Path:
     last = int(moving[-1]) + 1 if len(moving) else 0  # steps until everybody stopped
     fig = plt.figure(figsize=(6, 5.5))
     ax = fig.add_subplot(projection="3d")
-    xs, ys = np.nonzero(height)
-    if len(xs):
-        ax.bar3d(xs / size, ys / size, 0, 1 / size, 1 / size, height[xs, ys] / size,
-                 color="0.75", alpha=0.3, shade=True, linewidth=0)
+    viz.draw_buildings(ax, height, alpha=0.3)
     centres = (voxel[valid] + 0.5) / size
     found_at = found_at[valid]
     missed = ax.scatter(*centres.T, s=5, c="tab:red", depthshade=False)

@@ -24,6 +24,16 @@ def save_figure(fig, path, tight: bool = True) -> Path:
     return path
 
 
+def draw_buildings(ax, height, alpha: float = 0.35) -> None:
+    """Grey boxes for a (G, G) height map on a 3D axis in unit-cube coordinates."""
+    height = np.asarray(height)
+    size = height.shape[0]
+    xs, ys = np.nonzero(height)
+    if len(xs):
+        ax.bar3d(xs / size, ys / size, 0, 1 / size, 1 / size, height[xs, ys] / size,
+                 color="0.75", alpha=alpha, shade=True, linewidth=0)
+
+
 def render_episode(path: str | Path, height, target_voxel, target_valid, discovered,
                    positions, active, radio_range: float, title: str = "") -> Path:
     """Saves a 3D picture: buildings, windows found (green) / missed (red), paths, radio links.
@@ -37,10 +47,7 @@ def render_episode(path: str | Path, height, target_voxel, target_valid, discove
     active = np.asarray(active)
     fig = plt.figure(figsize=(8, 7))
     ax = fig.add_subplot(projection="3d")
-    xs, ys = np.nonzero(height)
-    if len(xs):
-        ax.bar3d(xs / size, ys / size, 0, 1 / size, 1 / size, height[xs, ys] / size,
-                 color="0.75", alpha=0.35, shade=True, linewidth=0)
+    draw_buildings(ax, height)
     valid = np.asarray(target_valid)
     found = np.asarray(discovered) & valid
     centres = (np.asarray(target_voxel) + 0.5) / size
