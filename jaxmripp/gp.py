@@ -86,6 +86,21 @@ def _float32_matmuls(fn):
     return wrapped
 
 
+def _matvec(matrix: jax.Array, vector: jax.Array) -> jax.Array:
+    """matrix (A, B) @ vector (B,) as a multiply and a row sum.
+
+    Under vmap a matrix-vector product becomes a batched dot with one output column,
+    which XLA:CPU runs as a slow per-batch loop (measured: the two in `predict` cost as
+    much as its (L, H) x (H, H) matmul); the multiply-reduce form fuses and vectorises.
+    """
+    return jnp.sum(matrix * vector, axis=-1)
+
+
+def _vecmat(vector: jax.Array, matrix: jax.Array) -> jax.Array:
+    """vector (A,) @ matrix (A, B) as a multiply and a column sum (see `_matvec`)."""
+    return jnp.sum(vector[:, None] * matrix, axis=0)
+
+
 def kernel(a: jax.Array, b: jax.Array, cfg: GPConfig) -> jax.Array:
     """Matern-1/2 covariance between pose sets: (..., A, 4), (..., B, 4) -> (..., A, B)."""
     # The barrier materialises the features: fused into the (A, B) loop below, XLA would
@@ -159,22 +174,32 @@ def add(
     others = ~at_slot
     occupied = state.valid[slot]
 
-    # Evict the point in the slot: v = r + sign(r_j) |r| e_j avoids cancellation.
+    # Evict the point in the slot: v = r + sign(r_j) |r| e_j avoids cancellation. The
+    # reflected factor is R - c v w^T (c = 2 / |v|^2, w = R^T v = a + sign |r| R[j]), with
+    # row and column j zeroed. It is never formed before the end: l and b below are
+    # expanded around R so that R is read three times (R^T r with R k, R^T l, and the
+    # final write) instead of once per product on the reflected copy.
     r = state.root[:, slot]
-    a = state.root.T @ r
-    a_jj = jnp.where(occupied, jnp.sum(r**2), 1.0)
-    v = r + jnp.where(r[slot] < 0, -1.0, 1.0) * jnp.sqrt(jnp.sum(r**2)) * at_slot
-    v_norm2 = jnp.where(occupied, jnp.sum(v**2), 1.0)
-    root = state.root - jnp.outer((2.0 / v_norm2) * v, v @ state.root)
-    root = jnp.where(others[:, None] & others[None, :], root, 0.0)  # exact zeros
+    k = jnp.where(state.valid & others, kernel(x[None], state.inputs, cfg)[0], 0.0)
+    a, root_k = _vecmat(r, state.root), _matvec(state.root, k)
+    r_norm2 = jnp.sum(r**2)
+    a_jj = jnp.where(occupied, r_norm2, 1.0)
+    v_j = jnp.where(r[slot] < 0, -1.0, 1.0) * jnp.sqrt(r_norm2)
+    v = r + v_j * at_slot
+    c = 2.0 / jnp.where(occupied, jnp.sum(v**2), 1.0)
+    w = a + v_j * state.root[slot]
     valid = state.valid & others
 
-    # Insert the new point into the same slot.
-    k = jnp.where(valid, kernel(x[None], state.inputs, cfg)[0], 0.0)
-    l = root @ k
+    # Insert the new point into the same slot: l = R' k, b = R'^T l on the reflected R'.
+    l = jnp.where(others, root_k - c * v * jnp.dot(w, k), 0.0)
     s = jnp.maximum(cfg.variance + cfg.noise - jnp.sum(l**2), cfg.noise)
-    b = root.T @ l
-    root = jnp.where(at_slot[:, None], (at_slot - b) / jnp.sqrt(s), root)
+    b = jnp.where(others, _vecmat(l, state.root) - c * w * jnp.dot(v, l), 0.0)
+    reflected = state.root - jnp.outer(c * v, w)
+    root = jnp.where(
+        at_slot[:, None],
+        (at_slot - b) / jnp.sqrt(s),
+        jnp.where(others[None, :], reflected, 0.0),  # exact zeros in column j
+    )
 
     # Write the new row of C first, then one pass over C gives both trace terms. b_j = 0
     # ignores row j; a^T C needs the evicted point's row, recomputed from its pose. Writing
@@ -184,7 +209,7 @@ def add(
         jnp.where(enabled, cross, state.eval_cross[slot])
     )
     evicted = kernel(state.inputs[slot][None], eval_poses, cfg)[0]
-    a_c, b_c = jnp.stack([a, b]) @ eval_cross
+    a_c, b_c = _vecmat(a, eval_cross), _vecmat(b, eval_cross)
     a_c = a_c + a[slot] * (evicted - cross)
     rise = jnp.where(occupied, jnp.sum(a_c**2) / a_jj, 0.0)
     trace = state.trace + rise - jnp.sum((cross - b_c) ** 2) / s
@@ -227,7 +252,8 @@ def predict(state: GPState, poses: jax.Array, cfg: GPConfig) -> tuple[jax.Array,
     """Posterior mean (L,) and latent variance (L,) in [0, variance] at poses (L, 4)."""
     k = jnp.where(state.valid, kernel(poses, state.inputs, cfg), 0.0)  # (L, H)
     proj = k @ state.root.T  # rows R k(inputs, pose)
-    mean = proj @ (state.root @ state.targets)
+    weights = _vecmat(_matvec(state.root, state.targets), state.root)  # A y
+    mean = _matvec(k, weights)
     variance = cfg.variance - jnp.sum(proj**2, axis=-1)
     return mean, jnp.clip(variance, 0.0, cfg.variance)
 
