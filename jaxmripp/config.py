@@ -143,6 +143,7 @@ class TrainConfig:
     name: str = "default"
     envs: int = 64
     rollout_steps: int = 16
+    reset_share: float = 0.25  # most environments restarted per rollout step, as a share
     updates: int = 100
     updates_per_chunk: int = 10
     keep_checkpoints: int = 3
@@ -282,6 +283,7 @@ RULES: dict[str, tuple] = {
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),
+    "train.reset_share": _range(0, 1, lo_open=True),
     "train.updates": _range(0, 10**9),
     "train.updates_per_chunk": _range(1, 10**6),
     "train.keep_checkpoints": _range(1, 1000),

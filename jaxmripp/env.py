@@ -366,17 +366,40 @@ def episode_done(state: EnvState) -> jax.Array:
     return jnp.all(state.done)
 
 
-def step_auto_reset(key, state: EnvState, actions, params: EnvParams,
-                    reset_obs: Observation, reset_state: EnvState):
-    """`step`, then swaps in a prepared reset state where every robot is done.
+def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
+                    reset_obs: Observation, reset_states: EnvState, max_resets: int):
+    """`step` over a leading environment axis E, then restarts environments whose robots
+    are all done from a prepared reset state (one per environment).
 
-    Computing a fresh reset inside every step would double the cost of a step (a reset
-    casts, feeds GPs and samples candidates too), so training rollouts prepare one reset
-    per environment up front and pass it in here.
+    Computing a fresh reset inside every step would double its cost (a reset casts, feeds
+    GPs and samples candidates too), so rollouts prepare the resets up front. Swapping
+    them in with a select over all E states would read and write every occupancy map and
+    GP each step (measured: 10% of a 256-environment rollout), so at most `max_resets`
+    environments, the lowest-numbered finished ones, are copied in, one row each. A
+    finished environment beyond that waits a step: its robots are all done, so it yields
+    no samples and loses nothing but time. Returns (obs, states, reward, done,
+    info, restarted (E,) bool).
     """
-    obs, state, reward, done, info = step(key, state, actions, params)
-    ended = episode_done(state)
-    pick = lambda fresh, old: jnp.where(ended, fresh, old)
-    state = jax.tree.map(pick, reset_state, state)
-    obs = jax.tree.map(pick, reset_obs, obs)
-    return obs, state, reward, done, info, ended
+    envs = actions.shape[0]
+    obs, states, reward, done, info = jax.vmap(step, in_axes=(0, 0, 0, None))(
+        keys, states, actions, params)
+    finished = jax.vmap(episode_done)(states)
+    (slots,) = jnp.nonzero(finished, size=max_resets, fill_value=envs)  # envs: no slot
+    restarted = jnp.zeros((envs,), bool).at[slots].set(True, mode="drop")
+
+    def copy_in(index, carry):
+        # One row copy per slot: XLA:CPU runs a scatter element by element, a dynamic
+        # slice update as a block copy. A free slot copies the last row onto itself.
+        slot = jnp.minimum(slots[index], envs - 1)
+        use = slots[index] < envs
+
+        def put(current, fresh):
+            old = jax.lax.dynamic_index_in_dim(current, slot, keepdims=True)
+            new = jax.lax.dynamic_index_in_dim(fresh, slot, keepdims=True)
+            return jax.lax.dynamic_update_index_in_dim(current, jnp.where(use, new, old),
+                                                       slot, axis=0)
+
+        return jax.tree.map(put, carry, (reset_obs, reset_states))
+
+    obs, states = jax.lax.fori_loop(0, max_resets, copy_in, (obs, states))
+    return obs, states, reward, done, info, restarted

@@ -8,6 +8,8 @@ backpropagation through time), so minibatches of whole environments stay consist
 
 from __future__ import annotations
 
+import math
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -90,7 +92,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
     key_pool, key_steps = jax.random.split(key)
     reset_obs, reset_state = jax.vmap(envmod.reset, in_axes=(0, None))(
         jax.random.split(key_pool, envs), params)
-    step = jax.vmap(envmod.step_auto_reset, in_axes=(0, 0, 0, None, 0, 0))
+    max_resets = max(1, math.ceil(cfg.train.reset_share * envs))
 
     def body(runner, key):
         key_act, key_env = jax.random.split(key)
@@ -99,9 +101,9 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         action = dist.sample(seed=key_act)
         log_prob = dist.log_prob(action)
         active = jnp.any(runner.obs.mask, axis=-1)
-        obs, state, reward, done, info, ended = step(
+        obs, state, reward, done, info, ended = envmod.step_auto_reset(
             jax.random.split(key_env, envs), runner.env_state, action, params, reset_obs,
-            reset_state)
+            reset_state, max_resets)
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
         ret = runner.episode_return + reward

@@ -207,6 +207,34 @@ def test_reset_and_step_are_traced_once(fns, rollout):
     assert fns.p0.reset._cache_size() == 1
 
 
+def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
+    """Envs 0 and 2 of three are finished; with one restart slot per step env 0 restarts
+    now (an exact copy of its prepared reset), env 2 waits a step, env 1 steps normally."""
+    stack = lambda trees: jax.tree.map(lambda *x: jnp.stack(x), *trees)  # noqa: E731
+    _, mid, actions, *_ = rollout[2]
+    finished = mid.replace(done=jnp.ones_like(mid.done))
+    states = stack([finished, mid, finished])
+    fresh = [fns.p0.reset(k) for k in jax.random.split(jax.random.key(5), 3)]
+    pool_obs, pool_states = stack([o for o, _ in fresh]), stack([s for _, s in fresh])
+    auto = jit(lambda keys, states, actions: envmod.step_auto_reset(
+        keys, states, actions, P0, pool_obs, pool_states, max_resets=1))
+    keys = jax.random.split(jax.random.key(6), 3)
+    all_actions = jnp.stack([actions] * 3)
+
+    obs, after, _, _, _, restarted = auto(keys, states, all_actions)
+    np.testing.assert_array_equal(restarted, [True, False, False])
+    jax.tree.map(np.testing.assert_array_equal, index(after, 0), fresh[0][1])
+    jax.tree.map(np.testing.assert_array_equal, index(obs, 0), fresh[0][0])
+    assert bool(np.all(after.done[2])) and not np.any(np.asarray(obs.mask[2]))
+    _, single, *_ = fns.p0.step(keys[1], mid, actions)
+    np.testing.assert_allclose(after.position[1], single.position, atol=1e-6)
+    np.testing.assert_array_equal(after.occupancy[1], single.occupancy)
+
+    _, later, _, _, _, restarted = auto(keys, after, all_actions)
+    np.testing.assert_array_equal(restarted, [False, False, True])
+    jax.tree.map(np.testing.assert_array_equal, index(later, 2), fresh[2][1])
+
+
 def test_observation_shapes_and_mask(rollout):
     obs, state, *_ = rollout[1]
     n_features = len(envmod.FEATURES)
