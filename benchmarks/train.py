@@ -1,6 +1,6 @@
 """Training throughput: rollout (env + policy) vs policy alone, and PPO update speed.
 
-python benchmarks/train.py [--envs 1024] [--steps 16] [section.key=value ...]
+python benchmarks/train.py [--envs 1024] [--steps 16] [--no-update] [section.key=value ...]
 Prints JSON lines; all figures come from one run, so their ratio is meaningful.
 """
 
@@ -25,6 +25,8 @@ def main() -> None:
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=16, help="rollout steps timed per call")
     parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--no-update", action="store_true",
+                        help="skip the PPO update timing (the slowest part at 1024 envs)")
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
@@ -58,6 +60,14 @@ def main() -> None:
         repeats=args.repeats)
     policy_rate = agents * args.steps / seconds_policy
 
+    shape = dict(envs=args.envs, robots=cfg.robots.count, candidates=cfg.candidates.count,
+                 width=cfg.policy.width, world=cfg.world.size, device=jax.default_backend())
+    emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
+    emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
+    emit("train.rollout_vs_policy_ratio", rollout_rate / policy_rate, "ratio", **shape)
+    if args.no_update:
+        return
+
     _, batch, _ = rollout(jax.random.PRNGKey(3), runner, state.params)
     last_value = jnp.zeros(batch.reward.shape[1:])
     update = jax.jit(lambda key, params, opt: ppo.update(
@@ -67,11 +77,6 @@ def main() -> None:
         repeats=args.repeats)
     samples = agents * args.steps * cfg.ppo.epochs
 
-    shape = dict(envs=args.envs, robots=cfg.robots.count, candidates=cfg.candidates.count,
-                 width=cfg.policy.width, world=cfg.world.size, device=jax.default_backend())
-    emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
-    emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
-    emit("train.rollout_vs_policy_ratio", rollout_rate / policy_rate, "ratio", **shape)
     emit("train.update_samples_per_s", samples / seconds_update, "samples/s",
          epochs=cfg.ppo.epochs, **shape)
 
