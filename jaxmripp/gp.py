@@ -180,7 +180,8 @@ def add(
     # expanded around R so that R is read three times (R^T r with R k, R^T l, and the
     # final write) instead of once per product on the reflected copy.
     r = state.root[:, slot]
-    k = jnp.where(state.valid & others, kernel(x[None], state.inputs, cfg)[0], 0.0)
+    valid = state.valid & others
+    k = jnp.where(valid, kernel(x[None], state.inputs, cfg)[0], 0.0)
     a, root_k = _vecmat(r, state.root), _matvec(state.root, k)
     r_norm2 = jnp.sum(r**2)
     a_jj = jnp.where(occupied, r_norm2, 1.0)
@@ -188,7 +189,6 @@ def add(
     v = r + v_j * at_slot
     c = 2.0 / jnp.where(occupied, jnp.sum(v**2), 1.0)
     w = a + v_j * state.root[slot]
-    valid = state.valid & others
 
     # Insert the new point into the same slot: l = R' k, b = R'^T l on the reflected R'.
     l = jnp.where(others, root_k - c * v * jnp.dot(w, k), 0.0)
