@@ -154,6 +154,7 @@ def test_padded_slots_do_not_change_results():
     free = ~np.asarray(state.valid)
     garbage = state.replace(
         inputs=jnp.where(free[:, None], 1e3 * rng.normal(size=(16, 4)), state.inputs),
+        features=jnp.where(free, 1e3 * rng.normal(size=(5, 16)), state.features),
         targets=jnp.where(free, 1e3 * rng.normal(size=16), state.targets),
         eval_cross=jnp.where(free[:, None], 1e3, state.eval_cross),
     )
