@@ -95,7 +95,7 @@ class GPConfig:
     variance: float = 1.0
     noise: float = 0.01
     eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
-    catchup_per_peer: int = 2  # radio-learned poses ingested per peer and step
+    catchup_rounds: int = 1  # peer rounds per step beyond N - 1 (env._feed_gps)
     shared_utility: bool = False  # one utility GP per environment fed by all robots
 
 
@@ -258,7 +258,7 @@ RULES: dict[str, tuple] = {
     "gp.variance": _POSITIVE,
     "gp.noise": _range(1e-6, 10),
     "gp.eval_grid": _range(1, 16),
-    "gp.catchup_per_peer": _range(1, 64),
+    "gp.catchup_rounds": _range(0, 64),
     "reward.alpha": _NONNEG,
     "reward.beta": _NONNEG,
     "reward.gamma": _NONNEG,

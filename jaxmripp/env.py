@@ -254,10 +254,12 @@ def _relative_drop(before, after):
 def _feed_gps(state: EnvState, params: EnvParams):
     """Adds newly known history entries to the GPs with a fixed number of slots per step.
 
-    Each robot ingests its own newest pose first (its trace drop is r_e), then up to
-    `catchup_per_peer` pending poses of every peer (their trace drop on the communication
-    GP is r_c). A backlog after a long radio silence drains over the following steps, so
-    every step does the same fixed amount of O(H^2) work.
+    Each robot ingests its own newest pose first (its trace drop is r_e), then runs
+    N - 1 + `catchup_rounds` peer rounds: in each it takes the oldest pending pose of the
+    peer with the largest backlog (ties: the nearest peer offset) into both GPs (the trace
+    drop on the communication GP is r_c). A steady exchange needs N - 1 rounds; the rest
+    drain a backlog after radio silence. Every step does the same fixed amount of O(H^2)
+    work, and every add is masked when nothing is pending, so rounds are kept few.
     """
     n, cfg = params.n_robots, params.gp
     eval_poses = gp.evaluation_poses(cfg)
@@ -290,12 +292,12 @@ def _feed_gps(state: EnvState, params: EnvParams):
     fed = state.fed + jnp.diag((jnp.diagonal(state.fed) < jnp.diagonal(state.know)).astype(jnp.int32))
 
     # Peers' poses, learned by radio: communication GP (and per-robot utility GPs).
-    peers = jnp.array([(k % (n - 1)) + 1 for k in range(max(n - 1, 1) * cfg.catchup_per_peer)]
-                      if n > 1 else [], jnp.int32)
+    peers = (rows[:, None] + jnp.arange(1, n)[None, :]) % n  # (N, N - 1) by offset
 
-    def ingest(carry, offset):
+    def ingest(carry, _):
         fed, ugp, cgp = carry
-        j = (rows + offset) % n
+        backlog = state.know[rows[:, None], peers] - fed[rows[:, None], peers]
+        j = peers[rows, jnp.argmax(backlog, axis=1)]  # first maximum: nearest offset
         pending, pose, value = jax.vmap(lambda i, jj: take(fed, state.know, i, jj))(rows, j)
         if not cfg.shared_utility:
             ugp = jax.vmap(gp.add, in_axes=(0, 0, 0, None, None, 0))(
@@ -307,7 +309,9 @@ def _feed_gps(state: EnvState, params: EnvParams):
         return (fed, ugp, cgp), None
 
     comm_before = jax.vmap(gp.covariance_trace)(state.comm_gp)
-    (fed, utility_gp, comm_gp), _ = jax.lax.scan(ingest, (fed, utility_gp, state.comm_gp), peers)
+    rounds = n - 1 + cfg.catchup_rounds if n > 1 else 0
+    (fed, utility_gp, comm_gp), _ = jax.lax.scan(
+        ingest, (fed, utility_gp, state.comm_gp), length=rounds)
     reward_communication = _relative_drop(comm_before, jax.vmap(gp.covariance_trace)(comm_gp))
     state = state.replace(fed=fed, utility_gp=utility_gp, comm_gp=comm_gp)
     return state, reward_exploration, reward_communication

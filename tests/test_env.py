@@ -358,6 +358,22 @@ def test_chain_relay_spreads_knowledge_end_to_end_single_hop_does_not(fns, rollo
     assert int(relay.fed[0, 2]) == 2 and int(hop.fed[0, 2]) == 1
 
 
+def test_peer_rounds_take_the_largest_backlog_first(rollout):
+    """Hand-worked: N - 1 + catchup_rounds = 3 rounds; ties go to the nearest peer offset."""
+    assert P0.gp.catchup_rounds == 1
+    state = max((s for _, s, *_ in rollout[1:]), key=lambda s: int(np.asarray(s.know).min()))
+    know = np.asarray(state.know)
+    backlog = np.array([[0, 3, 1], [0, 0, 0], [2, 2, 0]])
+    assert (know >= backlog).all()
+    start = state.replace(fed=jnp.asarray(know - backlog, jnp.int32))
+    after = jax.jit(envmod._feed_gps, static_argnums=1)(start, P0)[0]
+    # Robot 0 (peers 1, 2): 3 -> 2 from 1, 2 vs 1 -> 1 from 1, tie 1 vs 1 -> peer 1 (offset 1).
+    # Robot 2 (peers 0, 1 by offset): tie 2 vs 2 -> 0, then 1 vs 2 -> 1, tie 1 vs 1 -> 0.
+    np.testing.assert_array_equal(know - np.asarray(after.fed), [[0, 0, 1], [0, 0, 0], [0, 1, 0]])
+    np.testing.assert_array_equal(
+        np.asarray(after.comm_gp.count) - np.asarray(start.comm_gp.count), [3, 0, 3])
+
+
 # ---------------------------------------------------------------------------------------
 # Rewards
 

@@ -10,8 +10,8 @@ One planning round, on every robot, in this order (the JAX env's order, jaxmripp
 `sense` charges the budget for the move just made, records the visited pose and the
 number of windows seen from it, and writes the observed voxels into the map. `receive`
 stores what a neighbour visited and where it is now. `decide` feeds the GPs (own newest
-pose first, then at most `gp.catchup_per_peer` pending poses per peer, peers in the env's
-order), draws candidate poses (or takes ones supplied by the caller), builds the policy's
+pose first, then N - 1 + `gp.catchup_rounds` peer rounds, each taking the oldest pending
+pose of the peer with the largest backlog), draws candidate poses (or takes ones supplied by the caller), builds the policy's
 inputs exactly as `jaxmripp.env.observe` does, and picks the next pose with the exported
 policy or the greedy rule of `jaxmripp.baselines.greedy_planner`.
 
@@ -134,10 +134,10 @@ class OnboardPlanner:
         self.peer_fed: dict[int, int] = {j: 0 for j in self._peer_ids()}
         self.contacts: dict[int, np.ndarray] = {}
         self._command: tuple[np.ndarray, np.ndarray] | None = None  # (from, to) of last move
-        # The GP feeding order of jaxmripp.env._feed_gps: peer offsets 1..n-1, repeated.
+        # jaxmripp.env._feed_gps: peers by offset 1..n-1 (its tie order), a fixed round count.
         n = team_size
-        self._feed_order = [(self.id + (k % (n - 1)) + 1) % n
-                            for k in range((n - 1) * spec.gp.catchup_per_peer)] if n > 1 else []
+        self._peers_by_offset = [(self.id + offset) % n for offset in range(1, n)]
+        self._peer_rounds = n - 1 + spec.gp.catchup_rounds if n > 1 else 0
 
     @classmethod
     def load(cls, export: str | Path, robot_id: int, budget: float, **kwargs) -> "OnboardPlanner":
@@ -315,11 +315,13 @@ class OnboardPlanner:
         return voxel_of(points[first], self.spec.size)
 
     def _feed_gps(self) -> None:
-        """jaxmripp.env._feed_gps for this robot: own pose, then peers in the env's order."""
+        """jaxmripp.env._feed_gps for this robot: own pose, then the largest backlogs."""
         if self.own_fed < len(self.history_pose):
             self.utility_gp.add(self.history_pose[self.own_fed], self.history_utility[self.own_fed])
             self.own_fed += 1
-        for j in self._feed_order:
+        for _ in range(self._peer_rounds):
+            j = max(self._peers_by_offset,  # max keeps the first maximum, as argmax does
+                    key=lambda peer: len(self.peer_utility[peer]) - self.peer_fed[peer])
             index = self.peer_fed[j]
             if index < len(self.peer_utility[j]):
                 pose = self.peer_pose[j][index]

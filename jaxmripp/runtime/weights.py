@@ -56,12 +56,12 @@ class GPSpec:
     heading_scale: float
     variance: float
     noise: float
-    catchup_per_peer: int
+    catchup_rounds: int
     eval_grid: int
 
 
 _GP_FIELDS = {"capacity": int, "length_scale": float, "heading_scale": float,
-              "variance": float, "noise": float, "catchup_per_peer": int, "eval_grid": int}
+              "variance": float, "noise": float, "catchup_rounds": int, "eval_grid": int}
 
 
 @dataclasses.dataclass(frozen=True)
