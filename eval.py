@@ -13,6 +13,7 @@ import shlex
 import sys
 from pathlib import Path
 
+from jaxmripp import allocator
 from jaxmripp import config as cfgmod
 
 
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
                         help="skip the separate planner.act timing (one compile less per cell)")
     parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. eval.worlds=5")
     args = parser.parse_args(argv)
+    allocator.keep_freed_memory()
     try:
         cfg = cfgmod.load(args.config, args.overrides)
         policies = [parse_policy(p) for p in args.policy]

@@ -4,6 +4,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from jaxmripp import allocator
 from jaxmripp import config as cfgmod
 from jaxmripp import pipeline
 from jaxmripp import train as trainmod
@@ -19,6 +20,7 @@ def main(argv=None) -> int:
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. world.size=64")
     args = parser.parse_args(argv)
+    allocator.keep_freed_memory()
     try:
         if args.resume:
             run_dir = Path(args.resume)

@@ -1,4 +1,8 @@
-"""Helpers for benchmark scripts: median timing and JSON-line output."""
+"""Helpers for benchmark scripts: median timing and JSON-line output.
+
+Importing this module makes the process keep freed memory for reuse, as train.py and
+eval.py do (jaxmripp.allocator), so benchmarks time what training runs.
+"""
 
 from __future__ import annotations
 
@@ -10,6 +14,10 @@ import time
 from typing import Any, Callable
 
 import jax
+
+from jaxmripp import allocator
+
+allocator.keep_freed_memory()
 
 
 def emit(name: str, value: float, unit: str, **extra: Any) -> None:
