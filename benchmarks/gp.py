@@ -48,21 +48,26 @@ def incremental_step(states, poses, values, queries, eval_poses, cfg):
 
 
 def _refactor_one(buffer, pose, value, queries, eval_poses, cfg):
-    """Writes the point into the ring buffer, then factorises K + noise I from scratch."""
-    inputs, targets, valid, count = buffer
+    """Writes the point into the ring buffer, then factorises K + noise I from scratch.
+
+    The buffer keeps the kernel features of its inputs, as the incremental GP does.
+    """
+    features, targets, valid, count = buffer
     slot = count % cfg.capacity
-    inputs, targets = inputs.at[slot].set(pose), targets.at[slot].set(value)
-    valid = valid.at[slot].set(True)
-    gram = jnp.where(valid[:, None] & valid[None, :], gp.kernel(inputs, inputs, cfg), 0.0)
+    features = features.at[:, slot].set(gp.pose_features(pose, cfg))
+    targets, valid = targets.at[slot].set(value), valid.at[slot].set(True)
+    gram = jnp.where(valid[:, None] & valid[None, :], gp.feature_kernel(features, features, cfg), 0.0)
     chol = jnp.linalg.cholesky(gram + jnp.diag(jnp.where(valid, cfg.noise, 1.0)))
-    points = jnp.concatenate([queries, eval_poses])
-    rhs = jnp.concatenate([gp.kernel(inputs, points, cfg), targets[:, None]], axis=1)
+    # Materialised, as in gp.kernel, so XLA does not redo cos and sin for every pair.
+    points = jax.lax.optimization_barrier(
+        gp.pose_features(jnp.concatenate([queries, eval_poses]), cfg))
+    rhs = jnp.concatenate([gp.feature_kernel(features, points, cfg), targets[:, None]], axis=1)
     solved = solve_triangular(chol, jnp.where(valid[:, None], rhs, 0.0), lower=True)
     at_queries, at_eval = solved[:, : len(queries)], solved[:, len(queries) : -1]
     mean = jnp.sum(at_queries * solved[:, -1:], axis=0)  # no batched matvec: see gp._matvec
     variance = jnp.clip(cfg.variance - jnp.sum(at_queries**2, axis=0), 0.0, cfg.variance)
     trace = len(eval_poses) * cfg.variance - jnp.sum(at_eval**2)
-    return (inputs, targets, valid, count + 1), (mean, variance, trace)
+    return (features, targets, valid, count + 1), (mean, variance, trace)
 
 
 def refactor_step(buffers, poses, values, queries, eval_poses, cfg):
@@ -97,7 +102,7 @@ def main():
     empty = jax.tree.map(lambda x: jnp.broadcast_to(x, (GPS, *x.shape)), empty)
     fill = jax.jit(jax.vmap(lambda s, p, v: gp.add_many(s, p, v, cfg, eval_poses)))
     states = fill(empty, *observations(GPS, cfg.capacity // 2))
-    buffers = jax.tree.map(jnp.copy, (states.inputs, states.targets, states.valid, states.count))
+    buffers = jax.tree.map(jnp.copy, (states.features, states.targets, states.valid, states.count))
     inputs = [(*observations(GPS), random_poses(rng, GPS, CANDIDATES)) for _ in range(STEPS)]
 
     run_inc, out_inc = runner(incremental_step, states, inputs, eval_poses, cfg)

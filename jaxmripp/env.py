@@ -392,18 +392,17 @@ def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
     restarted = jnp.zeros((envs,), bool).at[slots].set(True, mode="drop")
 
     def copy_in(index, carry):
-        # One row copy per slot: XLA:CPU runs a scatter element by element, a dynamic
-        # slice update as a block copy. A free slot copies the last row onto itself.
-        slot = jnp.minimum(slots[index], envs - 1)
-        use = slots[index] < envs
+        # One row copy per restarted environment: XLA:CPU runs a scatter element by
+        # element, a dynamic slice update as a block copy.
+        slot = slots[index]
 
         def put(current, fresh):
-            old = jax.lax.dynamic_index_in_dim(current, slot, keepdims=True)
             new = jax.lax.dynamic_index_in_dim(fresh, slot, keepdims=True)
-            return jax.lax.dynamic_update_index_in_dim(current, jnp.where(use, new, old),
-                                                       slot, axis=0)
+            return jax.lax.dynamic_update_index_in_dim(current, new, slot, axis=0)
 
         return jax.tree.map(put, carry, (reset_obs, reset_states))
 
-    obs, states = jax.lax.fori_loop(0, max_resets, copy_in, (obs, states))
+    # A traced trip count: only the restarted environments are copied, not max_resets.
+    count = jnp.minimum(jnp.sum(finished), max_resets)
+    obs, states = jax.lax.fori_loop(0, count, copy_in, (obs, states))
     return obs, states, reward, done, info, restarted

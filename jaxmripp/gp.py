@@ -106,7 +106,7 @@ def _vecmat(vector: jax.Array, matrix: jax.Array) -> jax.Array:
 
 def kernel(a: jax.Array, b: jax.Array, cfg: GPConfig) -> jax.Array:
     """Matern-1/2 covariance between pose sets: (..., A, 4), (..., B, 4) -> (..., A, B)."""
-    return _feature_kernel(_materialised_features(a, cfg), _materialised_features(b, cfg), cfg)
+    return feature_kernel(_materialised_features(a, cfg), _materialised_features(b, cfg), cfg)
 
 
 def _materialised_features(poses: jax.Array, cfg: GPConfig) -> jax.Array:
@@ -115,8 +115,8 @@ def _materialised_features(poses: jax.Array, cfg: GPConfig) -> jax.Array:
     return jax.lax.optimization_barrier(pose_features(poses, cfg))
 
 
-def _feature_kernel(fa: jax.Array, fb: jax.Array, cfg: GPConfig) -> jax.Array:
-    """`kernel` on features: (5, ..., A), (5, ..., B) -> (..., A, B)."""
+def feature_kernel(fa: jax.Array, fb: jax.Array, cfg: GPConfig) -> jax.Array:
+    """`kernel` on `pose_features`: (5, ..., A), (5, ..., B) -> (..., A, B)."""
     # Differences, not |a|^2 + |b|^2 - 2 a.b: near-duplicate poses must keep k ~ variance.
     dist2 = sum((fa[c][..., :, None] - fb[c][..., None, :]) ** 2 for c in range(len(fa)))
     return cfg.variance * jnp.exp(-jnp.sqrt(dist2) / cfg.length_scale)
@@ -195,7 +195,7 @@ def add(
     # final write) instead of once per product on the reflected copy.
     r = state.root[:, slot]
     valid = state.valid & others
-    k = jnp.where(valid, _feature_kernel(x_features, state.features, cfg)[0], 0.0)
+    k = jnp.where(valid, feature_kernel(x_features, state.features, cfg)[0], 0.0)
     a, root_k = _vecmat(r, state.root), _matvec(state.root, k)
     r_norm2 = jnp.sum(r**2)
     a_jj = jnp.where(occupied, r_norm2, 1.0)
@@ -219,11 +219,11 @@ def add(
     # stacked: measured 10% faster env steps than two passes over C). b_j = 0
     # ignores row j; a^T C needs the evicted point's row, recomputed from its pose. Writing
     # before reading lets XLA update C in place; read-then-write made it copy C twice.
-    cross = _feature_kernel(x_features, eval_features, cfg)[0]
+    cross = feature_kernel(x_features, eval_features, cfg)[0]
     eval_cross = state.eval_cross.at[slot].set(
         jnp.where(enabled, cross, state.eval_cross[slot])
     )
-    evicted = _feature_kernel(state.features[:, slot, None], eval_features, cfg)[0]
+    evicted = feature_kernel(state.features[:, slot, None], eval_features, cfg)[0]
     a_c, b_c = jnp.sum(jnp.stack([a, b])[:, :, None] * eval_cross, axis=1)
     a_c = a_c + a[slot] * (evicted - cross)
     rise = jnp.where(occupied, jnp.sum(a_c**2) / a_jj, 0.0)
@@ -267,7 +267,7 @@ def add_many(
 def predict(state: GPState, poses: jax.Array, cfg: GPConfig) -> tuple[jax.Array, jax.Array]:
     """Posterior mean (L,) and latent variance (L,) in [0, variance] at poses (L, 4)."""
     query_features = _materialised_features(poses, cfg)
-    k = jnp.where(state.valid, _feature_kernel(query_features, state.features, cfg), 0.0)
+    k = jnp.where(state.valid, feature_kernel(query_features, state.features, cfg), 0.0)
     proj = k @ state.root.T  # (L, H) rows R k(inputs, pose)
     # A y = R^T (R y) and the mean k^T A y as einsums: here, unlike in `add`, XLA's
     # matrix-vector kernels beat the multiply-reduce of `_matvec` (predict 25% faster).
