@@ -1,11 +1,14 @@
 """Training throughput: rollout (env + policy) vs policy alone, and PPO update speed.
 
 python benchmarks/train.py [--envs 1024] [--steps 16] [--no-update] [section.key=value ...]
-Prints JSON lines; all figures come from one run, so their ratio is meaningful.
+Prints JSON lines; all figures come from one run, so their ratio is meaningful. Rollout
+and policy-only calls alternate for --rounds rounds, so both see the same machine load;
+rates are medians over rounds and the ratio is the median of the per-round ratios.
 """
 
 import argparse
 import os
+import statistics
 import sys
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -24,7 +27,8 @@ def main() -> None:
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=16, help="rollout steps timed per call")
-    parser.add_argument("--repeats", type=int, default=2)
+    parser.add_argument("--rounds", type=int, default=3,
+                        help="alternating rollout / policy-only timings (and update repeats)")
     parser.add_argument("--no-update", action="store_true",
                         help="skip the PPO update timing (the slowest part at 1024 envs)")
     parser.add_argument("overrides", nargs="*")
@@ -39,9 +43,7 @@ def main() -> None:
 
     rollout = jax.jit(lambda key, runner, params: ppo.rollout(
         key, runner, params, trainer.network, cfg, trainer.env_params))
-    seconds = median_seconds(lambda: rollout(jax.random.PRNGKey(1), runner, state.params),
-                             repeats=args.repeats)
-    rollout_rate = agents * args.steps / seconds
+    run_rollout = lambda: rollout(jax.random.PRNGKey(1), runner, state.params)  # noqa: E731
 
     @jax.jit
     def policy_only(key, params, memory, obs):
@@ -55,16 +57,22 @@ def main() -> None:
         steps = jnp.arange(args.steps, dtype=jnp.float32)
         return jax.lax.scan(body, memory, (jax.random.split(key, args.steps), steps))
 
-    seconds_policy = median_seconds(
-        lambda: policy_only(jax.random.PRNGKey(2), state.params, runner.memory, runner.obs),
-        repeats=args.repeats)
-    policy_rate = agents * args.steps / seconds_policy
+    run_policy = lambda: policy_only(  # noqa: E731
+        jax.random.PRNGKey(2), state.params, runner.memory, runner.obs)
+    for fn in (run_rollout, run_policy):  # compile and warm up
+        jax.block_until_ready(fn())
+    rounds = [(median_seconds(run_rollout, 1, warmup=0), median_seconds(run_policy, 1, warmup=0))
+              for _ in range(args.rounds)]
+    rollout_rate = agents * args.steps / statistics.median(r for r, _ in rounds)
+    policy_rate = agents * args.steps / statistics.median(p for _, p in rounds)
+    ratio = statistics.median(p / r for r, p in rounds)
 
     shape = dict(envs=args.envs, robots=cfg.robots.count, candidates=cfg.candidates.count,
                  width=cfg.policy.width, world=cfg.world.size, device=jax.default_backend())
     emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
     emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
-    emit("train.rollout_vs_policy_ratio", rollout_rate / policy_rate, "ratio", **shape)
+    emit("train.rollout_vs_policy_ratio", ratio, "ratio", **shape,
+         per_round=[round(p / r, 3) for r, p in rounds])
     if args.no_update:
         return
 
@@ -74,7 +82,7 @@ def main() -> None:
         key, params, opt, trainer.network, trainer.optimizer, batch, last_value, cfg.ppo))
     seconds_update = median_seconds(
         lambda: update(jax.random.PRNGKey(4), state.params, state.opt_state),
-        repeats=args.repeats)
+        repeats=args.rounds)
     samples = agents * args.steps * cfg.ppo.epochs
 
     emit("train.update_samples_per_s", samples / seconds_update, "samples/s",

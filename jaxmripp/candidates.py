@@ -108,10 +108,13 @@ def sample(
     pose_ok = place_ok[:, None] & (cost <= budget_left) & ~is_current
     keep = jnp.any(pose_ok, axis=-1)  # the cheapest remaining pose fits the budget
 
-    # Compact: a stable sort on ~keep moves the feasible draws to the front in draw order,
-    # so slot 0 stays the current position whenever turning in place is feasible.
-    slot = jnp.argsort(~keep, stable=True)[: cand.positions]
-    kept = keep[slot]
+    # Compact: slot r takes the r-th feasible draw in draw order, so slot 0 stays the
+    # current position whenever turning in place is feasible. A rank match over (slots,
+    # draws) instead of a stable argsort, which XLA:CPU runs as a slow per-row sort.
+    rank = jnp.cumsum(keep) - 1
+    match = keep[None, :] & (rank[None, :] == jnp.arange(cand.positions)[:, None])
+    slot = jnp.argmax(match, axis=1)
+    kept = jnp.any(match, axis=1)
     # Padding sits at the current position (finite, inside the world) so that downstream
     # features never see the rejected draws; its cost is then exactly the turn cost.
     slot_position = jnp.where(kept[:, None], drawn[slot], position)
