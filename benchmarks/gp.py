@@ -32,7 +32,7 @@ from jaxmripp import gp  # noqa: E402
 from jaxmripp.config import GPConfig  # noqa: E402
 from jaxmripp.geometry import HEADING_ANGLES  # noqa: E402
 
-GPS, CANDIDATES, STEPS, ROUNDS = 1024 * 3, 80, 8, 3
+GPS, CANDIDATES, STEPS, ROUNDS = 1024 * 3, 80, 8, 7
 
 
 def random_poses(rng, *shape):

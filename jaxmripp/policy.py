@@ -83,16 +83,21 @@ class Attention(nn.Module):
     @nn.compact
     def __call__(self, queries, context, context_mask):
         head_dim = self.width // self.heads
-        split = lambda x: x.reshape(x.shape[:-1] + (self.heads, head_dim))  # noqa: E731
-        q = split(nn.Dense(self.width, name="query")(queries))  # (..., Q, H, D)
-        k = split(nn.Dense(self.width, name="key")(context))  # (..., K, H, D)
-        v = split(nn.Dense(self.width, name="value")(context))  # (..., K, H, D)
-        scores = jnp.einsum("...qhd,...khd->...hqk", q, k) / np.sqrt(head_dim)
+
+        def heads_first(x):  # (..., T, W) -> (..., H, T, D)
+            return jnp.swapaxes(x.reshape(x.shape[:-1] + (self.heads, head_dim)), -3, -2)
+
+        # Head-major operands: XLA:CPU's batched matmuls then run on contiguous blocks
+        # (contracting over a strided head axis made the policy forward 2.2x slower).
+        q = heads_first(nn.Dense(self.width, name="query")(queries))  # (..., H, Q, D)
+        k = heads_first(nn.Dense(self.width, name="key")(context))  # (..., H, K, D)
+        v = heads_first(nn.Dense(self.width, name="value")(context))  # (..., H, K, D)
+        scores = jnp.einsum("...hqd,...hkd->...hqk", q, k) / np.sqrt(head_dim)
         # Masked keys get the finite floor rather than -inf: if every key is masked the
         # softmax is uniform (finite) instead of 0/0.
         scores = masked_logits(scores, context_mask[..., None, None, :])
         weights = jax.nn.softmax(scores, axis=-1)  # (..., H, Q, K)
-        out = jnp.einsum("...hqk,...khd->...qhd", weights, v)
+        out = jnp.swapaxes(weights @ v, -3, -2)  # (..., Q, H, D)
         return nn.Dense(self.width, name="out")(out.reshape(queries.shape))
 
 
