@@ -309,9 +309,10 @@ def _feed_gps(state: EnvState, params: EnvParams):
         return (fed, ugp, cgp), None
 
     comm_before = jax.vmap(gp.covariance_trace)(state.comm_gp)
-    rounds = n - 1 + cfg.catchup_rounds if n > 1 else 0
-    (fed, utility_gp, comm_gp), _ = jax.lax.scan(
-        ingest, (fed, utility_gp, state.comm_gp), length=rounds)
+    comm_gp = state.comm_gp
+    if n > 1:  # a lone robot has no peers (and no peer rounds to trace)
+        (fed, utility_gp, comm_gp), _ = jax.lax.scan(
+            ingest, (fed, utility_gp, comm_gp), length=n - 1 + cfg.catchup_rounds)
     reward_communication = _relative_drop(comm_before, jax.vmap(gp.covariance_trace)(comm_gp))
     state = state.replace(fed=fed, utility_gp=utility_gp, comm_gp=comm_gp)
     return state, reward_exploration, reward_communication
