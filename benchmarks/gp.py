@@ -56,7 +56,8 @@ def _refactor_one(buffer, pose, value, queries, eval_poses, cfg):
     slot = count % cfg.capacity
     features = features.at[:, slot].set(gp.pose_features(pose, cfg))
     targets, valid = targets.at[slot].set(value), valid.at[slot].set(True)
-    gram = jnp.where(valid[:, None] & valid[None, :], gp.feature_kernel(features, features, cfg), 0.0)
+    both_valid = valid[:, None] & valid[None, :]
+    gram = jnp.where(both_valid, gp.feature_kernel(features, features, cfg), 0.0)
     chol = jnp.linalg.cholesky(gram + jnp.diag(jnp.where(valid, cfg.noise, 1.0)))
     # Materialised, as in gp.kernel, so XLA does not redo cos and sin for every pair.
     points = jax.lax.optimization_barrier(

@@ -30,4 +30,5 @@ def keep_freed_memory() -> bool:
         return False
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
     libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    return bool(libc.mallopt(M_MMAP_MAX, 0)) and bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    no_mmap = bool(libc.mallopt(M_MMAP_MAX, 0))
+    return no_mmap and bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))

@@ -263,11 +263,16 @@ def add_many(
     return jax.lax.scan(body, state, (poses, values, enabled))[0]
 
 
+def cross_covariance(state: GPState, poses: jax.Array, cfg: GPConfig) -> jax.Array:
+    """k(poses, inputs) over the valid slots, (L, H), from the stored input features."""
+    query_features = _materialised_features(poses, cfg)
+    return jnp.where(state.valid, feature_kernel(query_features, state.features, cfg), 0.0)
+
+
 @_float32_matmuls
 def predict(state: GPState, poses: jax.Array, cfg: GPConfig) -> tuple[jax.Array, jax.Array]:
     """Posterior mean (L,) and latent variance (L,) in [0, variance] at poses (L, 4)."""
-    query_features = _materialised_features(poses, cfg)
-    k = jnp.where(state.valid, feature_kernel(query_features, state.features, cfg), 0.0)
+    k = cross_covariance(state, poses, cfg)
     proj = k @ state.root.T  # (L, H) rows R k(inputs, pose)
     # A y = R^T (R y) and the mean k^T A y as einsums: here, unlike in `add`, XLA's
     # matrix-vector kernels beat the multiply-reduce of `_matvec` (predict 25% faster).

@@ -79,8 +79,7 @@ def _scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty
     g = ctx.utility
 
     def proj(x):
-        k = jnp.where(g.valid, gp.kernel(x, g.inputs, gp_cfg), 0.0)
-        return k @ g.root.T
+        return gp.cross_covariance(g, x, gp_cfg) @ g.root.T
 
     px, ps = proj(poses), proj(s)
     prior_xs = gp.kernel(poses, s, gp_cfg)

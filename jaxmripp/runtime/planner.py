@@ -11,9 +11,10 @@ One planning round, on every robot, in this order (the JAX env's order, jaxmripp
 number of windows seen from it, and writes the observed voxels into the map. `receive`
 stores what a neighbour visited and where it is now. `decide` feeds the GPs (own newest
 pose first, then N - 1 + `gp.catchup_rounds` peer rounds, each taking the oldest pending
-pose of the peer with the largest backlog), draws candidate poses (or takes ones supplied by the caller), builds the policy's
-inputs exactly as `jaxmripp.env.observe` does, and picks the next pose with the exported
-policy or the greedy rule of `jaxmripp.baselines.greedy_planner`.
+pose of the peer with the largest backlog), draws candidate poses (or takes ones
+supplied by the caller), builds the policy's inputs exactly as `jaxmripp.env.observe`
+does, and picks the next pose with the exported policy or the greedy rule of
+`jaxmripp.baselines.greedy_planner`.
 
 Safety filter: whatever picks the pose, it is chosen among candidates whose straight flight
 crosses no voxel the robot knows to be OCCUPIED (exact voxel traversal, start voxel
