@@ -6,9 +6,16 @@ the attention scores alone are E x N x heads x L^2 floats, 39 MB at 128 environm
 every call page-faults each buffer in again (at 128 environments a third of the rollout's
 wall time went to system time). With chunk-level mmap off and heap trimming effectively
 off, freed blocks are reused: measured in one run of `benchmarks/train.py --envs 128`,
-rollout 1,770 -> 2,499 and policy forward 2,627 -> 4,202 agent-steps/s. The price is that
-the process keeps its peak heap until it exits, so the entry points that run long jobs
-(training, evaluation, benchmarks) opt in; importing jaxmripp changes nothing.
+rollout 1,770 -> 2,499 and policy forward 2,627 -> 4,202 agent-steps/s.
+
+XLA's worker threads allocate from their own glibc arenas, whose heaps are at most 64 MB;
+a larger block there is mmapped whatever M_MMAP_MAX says (the GP benchmark's 63 MB
+kernel matrix plus headroom: 17,000 page faults and 40 ms of system time per call). One
+arena for all threads closes that path: `benchmarks/gp.py` went from 30,000 to 46,000 GP
+steps/s. The allocations are few and large, so the shared arena lock costs nothing
+measurable. The price of all this is that the process keeps its peak heap until it exits,
+so the entry points that run long jobs (training, evaluation, benchmarks) opt in;
+importing jaxmripp changes nothing.
 """
 
 from __future__ import annotations
@@ -20,6 +27,7 @@ import platform
 # mallopt parameter numbers from glibc's malloc.h.
 M_TRIM_THRESHOLD = -1
 M_MMAP_MAX = -4
+M_ARENA_MAX = -8
 # Largest value mallopt takes (an int): free space above 2 GB at the heap top is trimmed.
 TRIM_THRESHOLD = 2**31 - 1
 
@@ -30,5 +38,5 @@ def keep_freed_memory() -> bool:
         return False
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
     libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
-    no_mmap = bool(libc.mallopt(M_MMAP_MAX, 0))
-    return no_mmap and bool(libc.mallopt(M_TRIM_THRESHOLD, TRIM_THRESHOLD))
+    settings = [(M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, TRIM_THRESHOLD), (M_ARENA_MAX, 1)]
+    return all([bool(libc.mallopt(param, value)) for param, value in settings])

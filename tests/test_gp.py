@@ -132,6 +132,10 @@ def test_long_run_with_duplicates_stays_accurate():
     assert_matches_reference(state, poses[-16:], values[-16:], queries, cfg, eval_poses)
     _, variance = _predict(state, queries, cfg)
     assert np.all(np.isfinite(variance)) and np.all((variance >= 0) & (variance <= cfg.variance))
+    # The mean's weights are updated, never recomputed: they still equal R^T R y.
+    root = np.asarray(state.root, np.float64)
+    weights = root.T @ (root @ np.asarray(state.targets, np.float64))
+    np.testing.assert_allclose(state.weights, weights, rtol=0, atol=1e-5 * np.abs(weights).max())
 
 
 @pytest.mark.parametrize("points", [5, 19])  # filling, and full (the eviction path)
