@@ -6,15 +6,14 @@ import sys
 
 import pytest
 
+from jaxmripp import allocator
+
 pytestmark = pytest.mark.skipif(
     platform.system() != "Linux" or platform.libc_ver()[0] != "glibc", reason="glibc only")
 
-# Prints the bytes glibc holds in mmapped chunks while a 96 MB block is alive, allocated by
-# the main thread or by a worker thread (as XLA's thread pool allocates temporaries): a
-# worker's arena is made of 64 MB heaps, and glibc falls back to mmap for larger blocks
-# there whatever the mmap settings, unless all threads share the main arena.
+# Prints the bytes glibc holds in mmapped chunks while a 96 MB block is alive.
 PROBE = """
-import ctypes, sys, threading
+import ctypes, sys
 from jaxmripp import allocator
 class Info(ctypes.Structure):
     _fields_ = [(name, ctypes.c_size_t) for name in
@@ -25,25 +24,50 @@ libc.malloc.restype = ctypes.c_void_p
 if sys.argv[1] == "keep":
     assert allocator.keep_freed_memory()
 before = libc.mallinfo2().hblkhd
-blocks = []
-allocate = lambda: blocks.append(libc.malloc(96 << 20))
-if sys.argv[2] == "worker":
-    worker = threading.Thread(target=allocate)
-    worker.start()
-    worker.join()
-else:
-    allocate()
+block = libc.malloc(96 << 20)
 print(libc.mallinfo2().hblkhd - before)
 """
 
+# Prints how many arenas glibc runs once three threads have allocated at the same time
+# (malloc_info writes one <heap> element per arena).
+ARENA_PROBE = """
+import ctypes, sys, tempfile, threading
+from jaxmripp import allocator
+libc = ctypes.CDLL("libc.so.6")
+libc.malloc.restype = ctypes.c_void_p
+libc.fopen.restype = ctypes.c_void_p
+libc.malloc_info.argtypes = [ctypes.c_int, ctypes.c_void_p]
+libc.fclose.argtypes = [ctypes.c_void_p]
+if sys.argv[1] == "keep":
+    assert allocator.keep_freed_memory()
+together = threading.Barrier(4)
+def allocate():
+    libc.malloc(1 << 16)
+    together.wait()
+threads = [threading.Thread(target=allocate) for _ in range(3)]
+for thread in threads:
+    thread.start()
+together.wait()
+with tempfile.NamedTemporaryFile("r") as report:
+    stream = libc.fopen(report.name.encode(), b"w")
+    libc.malloc_info(0, stream)
+    libc.fclose(stream)
+    print(report.read().count("<heap nr="))
+"""
 
-def mmapped_bytes_for_a_96mb_block(mode: str, thread: str) -> int:
-    out = subprocess.run([sys.executable, "-c", PROBE, mode, thread], check=True,
-                         capture_output=True, text=True)
+
+def probe(script: str, mode: str) -> int:
+    out = subprocess.run([sys.executable, "-c", script, mode], check=True, capture_output=True,
+                         text=True)
     return int(out.stdout)
 
 
-@pytest.mark.parametrize("thread", ["main", "worker"])
-def test_keep_freed_memory_serves_large_blocks_from_the_heap(thread):
-    assert mmapped_bytes_for_a_96mb_block("default", thread) >= 96 << 20  # glibc: mmap
-    assert mmapped_bytes_for_a_96mb_block("keep", thread) == 0
+def test_keep_freed_memory_serves_large_blocks_from_the_heap():
+    assert probe(PROBE, "default") >= 96 << 20  # glibc's default: mmap
+    assert probe(PROBE, "keep") == 0
+
+
+def test_keep_freed_memory_caps_the_arenas():
+    # Worker threads' arenas mmap any block over 64 MB; capped, most land on the main one.
+    assert probe(ARENA_PROBE, "default") >= 3
+    assert probe(ARENA_PROBE, "keep") == allocator.ARENAS
