@@ -48,6 +48,17 @@ class Runner:
 
 
 @struct.dataclass
+class StepStats:
+    """What one rollout step reports; stacked over the T steps by the scan."""
+
+    ended: jax.Array  # () environments whose episode ended
+    discovered: jax.Array  # () summed final discovered fraction of those episodes
+    episode_return: jax.Array  # () summed per-robot mean return of those episodes
+    reward_parts: jax.Array  # (3, E * N) r_e, r_u, r_c per robot
+    acted: jax.Array  # (E * N,) bool: the robot moved this step
+
+
+@struct.dataclass
 class RolloutStats:
     episodes: jax.Array  # () episodes finished
     discovered: jax.Array  # () summed final discovered fraction of finished episodes
@@ -107,12 +118,13 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
         ret = runner.episode_return + reward
-        final_discovered = info.discovered_fraction
-        stats = (ended.sum(), (final_discovered * ended).sum(),
-                 (ret.mean(axis=1) * ended).sum(),
-                 jnp.stack([info.reward_exploration, info.reward_discovery,
-                            info.reward_communication]).reshape(3, -1),
-                 info.acted.reshape(-1))
+        stats = StepStats(
+            ended=ended.sum(),
+            discovered=(info.discovered_fraction * ended).sum(),
+            episode_return=(ret.mean(axis=1) * ended).sum(),
+            reward_parts=jnp.stack([info.reward_exploration, info.reward_discovery,
+                                    info.reward_communication]).reshape(3, -1),
+            acted=info.acted.reshape(-1))
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
                                 terminal, active)
@@ -120,13 +132,13 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
     runner, (transitions, stats) = jax.lax.scan(
         body, runner, jax.random.split(key_steps, cfg.train.rollout_steps))
-    ended, discovered, returns, parts, acted = stats
-    weights = acted[:, None, :]
+    weights = stats.acted[:, None, :]
     summary = RolloutStats(
-        episodes=ended.sum(),
-        discovered=discovered.sum(),
-        episode_return=returns.sum(),
-        reward_parts=(parts * weights).sum(axis=(0, 2)) / jnp.maximum(weights.sum(), 1),
+        episodes=stats.ended.sum(),
+        discovered=stats.discovered.sum(),
+        episode_return=stats.episode_return.sum(),
+        reward_parts=(stats.reward_parts * weights).sum(axis=(0, 2))
+        / jnp.maximum(weights.sum(), 1),
     )
     return runner, transitions, summary
 
