@@ -286,15 +286,28 @@ def cross_covariance(state: GPState, poses: jax.Array, cfg: GPConfig) -> jax.Arr
 
 
 @_float32_matmuls
-def predict(state: GPState, poses: jax.Array, cfg: GPConfig) -> tuple[jax.Array, jax.Array]:
-    """Posterior mean (L,) and latent variance (L,) in [0, variance] at poses (L, 4)."""
+def predict_projected(
+    state: GPState, poses: jax.Array, cfg: GPConfig
+) -> tuple[jax.Array, jax.Array, jax.Array]:
+    """`predict` plus its projections R k(inputs, pose), (L, H).
+
+    The posterior covariance between poses p and q is k(p, q) - proj_p . proj_q, so
+    callers that condition on further poses (tree search) reuse them. XLA drops the
+    projections when they are not used.
+    """
     k = cross_covariance(state, poses, cfg)
-    proj = k @ state.root.T  # (L, H) rows R k(inputs, pose)
+    proj = k @ state.root.T
     # Here, unlike in `add`, XLA's matrix-vector kernel beats the multiply-reduce of
     # `_matvec` (predict 25% faster).
     mean = jnp.einsum("lh,h->l", k, state.weights)
     variance = cfg.variance - jnp.sum(proj**2, axis=-1)
-    return mean, jnp.clip(variance, 0.0, cfg.variance)
+    return mean, jnp.clip(variance, 0.0, cfg.variance), proj
+
+
+def predict(state: GPState, poses: jax.Array, cfg: GPConfig) -> tuple[jax.Array, jax.Array]:
+    """Posterior mean (L,) and latent variance (L,) in [0, variance] at poses (L, 4)."""
+    mean, variance, _ = predict_projected(state, poses, cfg)
+    return mean, variance
 
 
 def covariance_trace(state: GPState) -> jax.Array:

@@ -73,15 +73,10 @@ class Context:
 
 def _scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty: bool = True):
     """r(x | S) for poses (K, 4), S = path (valid rows) + the peers' chosen poses."""
-    mean, var = gp.predict(ctx.utility, poses, gp_cfg)
     s = jnp.concatenate([path, ctx.peer_pose])
     on = jnp.concatenate([path_valid, ctx.peer_valid])
-    g = ctx.utility
-
-    def proj(x):
-        return gp.cross_covariance(g, x, gp_cfg) @ g.root.T
-
-    px, ps = proj(poses), proj(s)
+    mean, var, px = gp.predict_projected(ctx.utility, poses, gp_cfg)
+    ps = gp.predict_projected(ctx.utility, s, gp_cfg)[2]
     prior_xs = gp.kernel(poses, s, gp_cfg)
     c_xs = jnp.where(on[None], prior_xs - px @ ps.T, 0.0)  # posterior covariance (K, S)
     c_ss = gp.kernel(s, s, gp_cfg) - ps @ ps.T
