@@ -7,6 +7,9 @@ the state donated. The refactorising baseline does the same work from the same r
 buffer with a Cholesky factorisation and one triangular solve per GP and step. Both run in
 this process, so their ratio is meaningful on a shared, noisy machine.
 
+`gp.block_speedup_vs_adds` times the environment's radio rounds: three points added as
+one `gp.add_block` against three single adds, on the same GPs in the same run.
+
 Usage (from the repository root): python benchmarks/gp.py [--eval-grid 4]
 """
 
@@ -33,6 +36,7 @@ from jaxmripp.config import GPConfig  # noqa: E402
 from jaxmripp.geometry import HEADING_ANGLES  # noqa: E402
 
 GPS, CANDIDATES, STEPS, ROUNDS = 1024 * 3, 80, 8, 7
+BLOCK_POINTS = 3  # radio rounds per step for N = 3 robots (env._feed_gps)
 
 
 def random_poses(rng, *shape):
@@ -45,6 +49,20 @@ def incremental_step(states, poses, values, queries, eval_poses, cfg):
     states = jax.vmap(lambda s, p, v: gp.add(s, p, v, cfg, eval_poses))(states, poses, values)
     mean, variance = jax.vmap(lambda s, q: gp.predict(s, q, cfg))(states, queries)
     return states, (mean, variance, jax.vmap(gp.covariance_trace)(states))
+
+
+def block_step(states, poses, values, eval_poses, cfg):
+    states = jax.vmap(lambda s, p, v: gp.add_block(s, p, v, cfg, eval_poses))(states, poses, values)
+    return states, states.trace
+
+
+def adds_step(states, poses, values, eval_poses, cfg):
+    def one(state, pose_values):
+        return jax.lax.scan(
+            lambda s, pv: (gp.add(s, pv[0], pv[1], cfg, eval_poses), None), state, pose_values)[0]
+
+    states = jax.vmap(one)(states, (poses, values))
+    return states, states.trace
 
 
 def _refactor_one(buffer, pose, value, queries, eval_poses, cfg):
@@ -104,6 +122,7 @@ def main():
     fill = jax.jit(jax.vmap(lambda s, p, v: gp.add_many(s, p, v, cfg, eval_poses)))
     states = fill(empty, *observations(GPS, cfg.capacity // 2))
     buffers = jax.tree.map(jnp.copy, (states.features, states.targets, states.valid, states.count))
+    block_states, adds_states = jax.tree.map(jnp.copy, states), jax.tree.map(jnp.copy, states)
     inputs = [(*observations(GPS), random_poses(rng, GPS, CANDIDATES)) for _ in range(STEPS)]
 
     run_inc, out_inc = runner(incremental_step, states, inputs, eval_poses, cfg)
@@ -120,6 +139,16 @@ def main():
     shape = dict(gps=GPS, capacity=cfg.capacity, candidates=CANDIDATES, eval_poses=len(eval_poses))
     emit("gp.step_per_s", GPS / incremental, "GP steps/s", **shape, ms_per_batch=1e3 * incremental)
     emit("gp.speedup_vs_refactor", speedup, "x", **shape, refactor_step_per_s=GPS / refactor)
+
+    # The environment's radio rounds: BLOCK_POINTS points as one block vs one add each.
+    block_inputs = [observations(GPS, BLOCK_POINTS) for _ in range(STEPS)]
+    run_block, _ = runner(block_step, block_states, block_inputs, eval_poses, cfg)
+    run_adds, _ = runner(adds_step, adds_states, block_inputs, eval_poses, cfg)
+    rounds = [(median_seconds(run_block, 3), median_seconds(run_adds, 3)) for _ in range(ROUNDS)]
+    emit("gp.block_speedup_vs_adds", statistics.median(a / b for b, a in rounds), "x",
+         gps=GPS, capacity=cfg.capacity, points=BLOCK_POINTS,
+         block_ms=1e3 * statistics.median(b for b, _ in rounds),
+         adds_ms=1e3 * statistics.median(a for _, a in rounds))
 
 
 if __name__ == "__main__":

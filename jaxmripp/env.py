@@ -259,7 +259,8 @@ def _feed_gps(state: EnvState, params: EnvParams):
     peer with the largest backlog (ties: the nearest peer offset) into both GPs (the trace
     drop on the communication GP is r_c). A steady exchange needs N - 1 rounds; the rest
     drain a backlog after radio silence. Every step does the same fixed amount of O(H^2)
-    work, and every add is masked when nothing is pending, so rounds are kept few.
+    work: the rounds' poses enter each GP as one block (up to gp.BLOCK points), masked
+    where nothing is pending.
     """
     n, cfg = params.n_robots, params.gp
     eval_poses = gp.evaluation_poses(cfg)
@@ -291,28 +292,26 @@ def _feed_gps(state: EnvState, params: EnvParams):
         reward_exploration = _relative_drop(before, jax.vmap(gp.covariance_trace)(utility_gp))
     fed = state.fed + jnp.diag((jnp.diagonal(state.fed) < jnp.diagonal(state.know)).astype(jnp.int32))
 
-    # Peers' poses, learned by radio: communication GP (and per-robot utility GPs).
+    # Peers' poses, learned by radio: communication GP (and per-robot utility GPs). The
+    # rounds only pick poses (index bookkeeping); each GP then takes them in blocks, each
+    # costing about one add instead of one per round (gp.add_many, gp.add_block).
     peers = (rows[:, None] + jnp.arange(1, n)[None, :]) % n  # (N, N - 1) by offset
 
-    def ingest(carry, _):
-        fed, ugp, cgp = carry
+    def pick(fed, _):
         backlog = state.know[rows[:, None], peers] - fed[rows[:, None], peers]
         j = peers[rows, jnp.argmax(backlog, axis=1)]  # first maximum: nearest offset
-        pending, pose, value = jax.vmap(lambda i, jj: take(fed, state.know, i, jj))(rows, j)
-        if not cfg.shared_utility:
-            ugp = jax.vmap(gp.add, in_axes=(0, 0, 0, None, None, 0))(
-                ugp, pose, value, cfg, eval_poses, pending)
-        ones = jnp.ones((n,), jnp.float32)
-        cgp = jax.vmap(gp.add, in_axes=(0, 0, 0, None, None, 0))(
-            cgp, pose, ones, cfg, eval_poses, pending)
-        fed = fed.at[rows, j].add(pending.astype(jnp.int32))
-        return (fed, ugp, cgp), None
+        picked = jax.vmap(lambda i, jj: take(fed, state.know, i, jj))(rows, j)
+        return fed.at[rows, j].add(picked[0].astype(jnp.int32)), picked
 
     comm_before = jax.vmap(gp.covariance_trace)(state.comm_gp)
     comm_gp = state.comm_gp
     if n > 1:  # a lone robot has no peers (and no peer rounds to trace)
-        (fed, utility_gp, comm_gp), _ = jax.lax.scan(
-            ingest, (fed, utility_gp, comm_gp), length=n - 1 + cfg.catchup_rounds)
+        fed, (pending, pose, value) = jax.lax.scan(pick, fed, length=n - 1 + cfg.catchup_rounds)
+        pending, pose, value = (jnp.swapaxes(x, 0, 1) for x in (pending, pose, value))  # (N, R)
+        add_many = jax.vmap(gp.add_many, in_axes=(0, 0, 0, None, None, 0))
+        if not cfg.shared_utility:
+            utility_gp = add_many(utility_gp, pose, value, cfg, eval_poses, pending)
+        comm_gp = add_many(comm_gp, pose, jnp.ones_like(value), cfg, eval_poses, pending)
     reward_communication = _relative_drop(comm_before, jax.vmap(gp.covariance_trace)(comm_gp))
     state = state.replace(fed=fed, utility_gp=utility_gp, comm_gp=comm_gp)
     return state, reward_exploration, reward_communication

@@ -215,3 +215,56 @@ def test_add_and_predict_are_traced_once():
         state = add_once(state, pose, value, cfg, eval_poses, enabled)
         predict_once(state, random_poses(rng, 5), cfg)
     assert int(state.count) == 10
+
+
+_add_block = jax.jit(chex.assert_max_traces(gp.add_block, n=3), static_argnames="cfg")
+
+
+@pytest.mark.parametrize("filled", [5, 14, 30])  # filling, filling up mid-block, evicting
+def test_block_equals_sequential_adds_and_the_dense_reference(filled):
+    """One block of K points gives the state K single adds give (masked points skipped)."""
+    cfg = GPConfig(capacity=16)
+    eval_poses = gp.evaluation_poses(cfg)
+    rng = np.random.default_rng(10 + filled)
+    poses, values = random_poses(rng, filled), rng.normal(size=filled).astype(np.float32)
+    state = gp.empty(cfg, eval_poses)
+    for p, v in zip(poses, values):
+        state = add(state, p, v, cfg, eval_poses)
+    queries = random_poses(rng, 30)
+    for enabled in ([True, True, True, True], [False, True, False, True], [True, False, True]):
+        k = len(enabled)
+        block_poses, block_values = random_poses(rng, k), rng.normal(size=k).astype(np.float32)
+        sequential = state
+        for p, v, e in zip(block_poses, block_values, enabled):
+            sequential = add(sequential, p, v, cfg, eval_poses, e)
+        block = _add_block(state, block_poses, block_values, cfg, eval_poses, np.array(enabled))
+        chex.assert_trees_all_equal(
+            (block.valid, block.stamp, block.count, block.inputs, block.targets),
+            (sequential.valid, sequential.stamp, sequential.count, sequential.inputs,
+             sequential.targets))
+        chex.assert_trees_all_close(_predict(block, queries, cfg),
+                                    _predict(sequential, queries, cfg), rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(block.trace, sequential.trace, rtol=1e-5)
+        np.testing.assert_allclose(block.weights, sequential.weights, rtol=1e-4, atol=1e-4)
+        valid = np.asarray(block.valid)
+        assert_matches_reference(block, np.asarray(block.inputs)[valid],
+                                 np.asarray(block.targets)[valid], queries, cfg, eval_poses)
+
+
+def test_disabled_block_leaves_state_bit_identical():
+    cfg = GPConfig(capacity=16)
+    eval_poses = gp.evaluation_poses(cfg)
+    rng = np.random.default_rng(11)
+    state = _add_many(gp.empty(cfg, eval_poses), random_poses(rng, 19), rng.normal(size=19),
+                      cfg, eval_poses)
+    after = _add_block(state, random_poses(rng, 3), np.ones(3, np.float32), cfg, eval_poses,
+                       np.zeros(3, bool))
+    chex.assert_trees_all_equal(after, state)
+
+
+def test_block_larger_than_the_capacity_is_refused():
+    cfg = GPConfig(capacity=4)
+    eval_poses = gp.evaluation_poses(cfg)
+    with pytest.raises(ValueError, match="capacity 4"):
+        gp.add_block(gp.empty(cfg, eval_poses), np.zeros((5, 4), np.float32),
+                     np.zeros(5, np.float32), cfg, eval_poses)
