@@ -24,6 +24,7 @@ test: $(STAMP)
 bench: $(STAMP)
 	for b in sensing gp env runtime; do $(BIN)/python benchmarks/$$b.py || exit 1; done
 	$(BIN)/python benchmarks/train.py --envs 256
+	$(BIN)/python benchmarks/train.py --envs 256 --no-update --config configs/train_paper.yaml
 
 clean:
 	rm -rf $(VENV) runs

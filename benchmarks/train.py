@@ -4,6 +4,12 @@ python benchmarks/train.py [--envs 1024] [--steps 16] [--no-update] [section.key
 Prints JSON lines; all figures come from one run, so their ratio is meaningful. Rollout
 and policy-only calls alternate for --rounds rounds, so both see the same machine load;
 rates are medians over rounds and the ratio is the median of the per-round ratios.
+
+The ratio depends on the network as much as on the environment: the rollout costs the
+policy's time plus the environment's, so a cheaper policy lowers it. `--config
+configs/train_paper.yaml` measures it with the paper's network (width 128, feed-forward
+512), the one design.md's performance model is about; the default config's width-64
+network is about three times faster.
 """
 
 import argparse
@@ -67,8 +73,10 @@ def main() -> None:
     policy_rate = agents * args.steps / statistics.median(p for _, p in rounds)
     ratio = statistics.median(p / r for r, p in rounds)
 
-    shape = dict(envs=args.envs, robots=cfg.robots.count, candidates=cfg.candidates.count,
-                 width=cfg.policy.width, world=cfg.world.size, device=jax.default_backend())
+    shape = dict(config=args.config, envs=args.envs, robots=cfg.robots.count,
+                 candidates=cfg.candidates.count, width=cfg.policy.width,
+                 ff=cfg.policy.width * cfg.policy.ff_mult, world=cfg.world.size,
+                 device=jax.default_backend())
     emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
     emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
     emit("train.rollout_vs_policy_ratio", ratio, "ratio", **shape,
