@@ -371,9 +371,10 @@ def episode_done(state: EnvState) -> jax.Array:
 
 
 def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
-                    reset_obs: Observation, reset_states: EnvState, max_resets: int):
+                    reset_obs: Observation, reset_states: EnvState, max_resets: int,
+                    pool_used: jax.Array | int = 0):
     """`step` over a leading environment axis E, then restarts environments whose robots
-    are all done from a prepared reset state (one per environment).
+    are all done from a pool of P prepared reset states.
 
     Computing a fresh reset inside every step would double its cost (a reset casts, feeds
     GPs and samples candidates too), so rollouts prepare the resets up front. Swapping
@@ -381,10 +382,15 @@ def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
     GP each step (measured: 10% of a 256-environment rollout), so at most `max_resets`
     environments, the lowest-numbered finished ones, are copied in, one row each. A
     finished environment beyond that waits a step: its robots are all done, so it yields
-    no samples and loses nothing but time. Returns (obs, states, reward, done,
-    info, restarted (E,) bool).
+    no samples and loses nothing but time. Restarts take pool entries in order, from
+    `pool_used` (entries taken so far in this rollout) on, wrapping around after P: an
+    environment that finishes twice in one rollout starts a new world, where indexing the
+    pool by environment replayed its previous start (measured: 6-9% of the episodes of a
+    1024-environment rollout). Returns (obs, states, reward, done, info, restarted (E,)
+    bool, pool_used after this step).
     """
     envs = actions.shape[0]
+    pool = reset_obs.mask.shape[0]
     obs, states, reward, done, info = jax.vmap(step, in_axes=(0, 0, 0, None))(
         keys, states, actions, params)
     finished = jax.vmap(episode_done)(states)
@@ -394,10 +400,10 @@ def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
     def copy_in(index, carry):
         # One row copy per restarted environment: XLA:CPU runs a scatter element by
         # element, a dynamic slice update as a block copy.
-        slot = slots[index]
+        slot, entry = slots[index], (pool_used + index) % pool
 
         def put(current, fresh):
-            new = jax.lax.dynamic_index_in_dim(fresh, slot, keepdims=True)
+            new = jax.lax.dynamic_index_in_dim(fresh, entry, keepdims=True)
             return jax.lax.dynamic_update_index_in_dim(current, new, slot, axis=0)
 
         return jax.tree.map(put, carry, (reset_obs, reset_states))
@@ -405,4 +411,4 @@ def step_auto_reset(keys, states: EnvState, actions, params: EnvParams,
     # A traced trip count: only the restarted environments are copied, not max_resets.
     count = jnp.minimum(jnp.sum(finished), max_resets)
     obs, states = jax.lax.fori_loop(0, count, copy_in, (obs, states))
-    return obs, states, reward, done, info, restarted
+    return obs, states, reward, done, info, restarted, pool_used + count

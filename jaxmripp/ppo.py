@@ -105,16 +105,17 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         jax.random.split(key_pool, envs), params)
     max_resets = max(1, math.ceil(cfg.train.reset_share * envs))
 
-    def body(runner, key):
+    def body(carry, key):
+        runner, pool_used = carry
         key_act, key_env = jax.random.split(key)
         memory, logits, value = apply_batched(network, net_params, runner.memory, runner.obs)
         dist = distribution(logits, runner.obs.mask)
         action = dist.sample(seed=key_act)
         log_prob = dist.log_prob(action)
         active = jnp.any(runner.obs.mask, axis=-1)
-        obs, state, reward, done, info, ended = envmod.step_auto_reset(
+        obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             jax.random.split(key_env, envs), runner.env_state, action, params, reset_obs,
-            reset_state, max_resets)
+            reset_state, max_resets, pool_used)
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
         ret = runner.episode_return + reward
@@ -128,10 +129,11 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
                                 terminal, active)
-        return Runner(state, obs, memory, ret), (transition, stats)
+        return (Runner(state, obs, memory, ret), pool_used), (transition, stats)
 
-    runner, (transitions, stats) = jax.lax.scan(
-        body, runner, jax.random.split(key_steps, cfg.train.rollout_steps))
+    (runner, _), (transitions, stats) = jax.lax.scan(
+        body, (runner, jnp.zeros((), jnp.int32)),
+        jax.random.split(key_steps, cfg.train.rollout_steps))
     weights = stats.acted[:, None, :]
     summary = RolloutStats(
         episodes=stats.ended.sum(),

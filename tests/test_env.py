@@ -209,20 +209,22 @@ def test_reset_and_step_are_traced_once(fns, rollout):
 
 def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
     """Envs 0 and 2 of three are finished; with one restart slot per step env 0 restarts
-    now (an exact copy of its prepared reset), env 2 waits a step, env 1 steps normally."""
+    now (an exact copy of the first pool entry), env 2 waits a step and then takes the
+    next entry, env 1 steps normally; a full pool wraps around."""
     stack = lambda trees: jax.tree.map(lambda *x: jnp.stack(x), *trees)  # noqa: E731
     _, mid, actions, *_ = rollout[2]
     finished = mid.replace(done=jnp.ones_like(mid.done))
     states = stack([finished, mid, finished])
     fresh = [fns.p0.reset(k) for k in jax.random.split(jax.random.key(5), 3)]
     pool_obs, pool_states = stack([o for o, _ in fresh]), stack([s for _, s in fresh])
-    auto = jit(lambda keys, states, actions: envmod.step_auto_reset(
-        keys, states, actions, P0, pool_obs, pool_states, max_resets=1))
+    auto = jit(lambda keys, states, actions, used: envmod.step_auto_reset(
+        keys, states, actions, P0, pool_obs, pool_states, 1, used))
     keys = jax.random.split(jax.random.key(6), 3)
     all_actions = jnp.stack([actions] * 3)
 
-    obs, after, _, _, _, restarted = auto(keys, states, all_actions)
+    obs, after, _, _, _, restarted, used = auto(keys, states, all_actions, 0)
     np.testing.assert_array_equal(restarted, [True, False, False])
+    assert int(used) == 1
     jax.tree.map(np.testing.assert_array_equal, index(after, 0), fresh[0][1])
     jax.tree.map(np.testing.assert_array_equal, index(obs, 0), fresh[0][0])
     assert bool(np.all(after.done[2])) and not np.any(np.asarray(obs.mask[2]))
@@ -230,9 +232,15 @@ def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
     np.testing.assert_allclose(after.position[1], single.position, atol=1e-6)
     np.testing.assert_array_equal(after.occupancy[1], single.occupancy)
 
-    _, later, _, _, _, restarted = auto(keys, after, all_actions)
+    _, later, _, _, _, restarted, used = auto(keys, after, all_actions, used)
     np.testing.assert_array_equal(restarted, [False, False, True])
-    jax.tree.map(np.testing.assert_array_equal, index(later, 2), fresh[2][1])
+    assert int(used) == 2
+    jax.tree.map(np.testing.assert_array_equal, index(later, 2), fresh[1][1])
+
+    # Past the end of the pool, entries are taken again from the first.
+    _, wrapped, _, _, _, _, used = auto(keys, states, all_actions, 3)
+    assert int(used) == 4
+    jax.tree.map(np.testing.assert_array_equal, index(wrapped, 0), fresh[0][1])
 
 
 def test_observation_shapes_and_mask(rollout):
