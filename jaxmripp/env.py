@@ -300,8 +300,8 @@ def _feed_gps(state: EnvState, params: EnvParams):
     def pick(fed, _):
         backlog = state.know[rows[:, None], peers] - fed[rows[:, None], peers]
         j = peers[rows, jnp.argmax(backlog, axis=1)]  # first maximum: nearest offset
-        picked = jax.vmap(lambda i, jj: take(fed, state.know, i, jj))(rows, j)
-        return fed.at[rows, j].add(picked[0].astype(jnp.int32)), picked
+        pending, pose, value = jax.vmap(lambda i, jj: take(fed, state.know, i, jj))(rows, j)
+        return fed.at[rows, j].add(pending.astype(jnp.int32)), (pending, pose, value)
 
     comm_before = jax.vmap(gp.covariance_trace)(state.comm_gp)
     comm_gp = state.comm_gp
