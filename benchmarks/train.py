@@ -9,7 +9,9 @@ The ratio depends on the network as much as on the environment: the rollout cost
 policy's time plus the environment's, so a cheaper policy lowers it. `--config
 configs/train_paper.yaml` measures it with the paper's network (width 128, feed-forward
 512), the one design.md's performance model is about; the default config's width-64
-network is about three times faster.
+network is about three times faster. With the update timed it also prints
+`train.env_share_of_iteration`: the environment's share (rollout minus policy) of one
+rollout plus its PPO update, which is what decides whether the environment slows training.
 """
 
 import argparse
@@ -69,7 +71,9 @@ def main() -> None:
         jax.block_until_ready(fn())
     rounds = [(median_seconds(run_rollout, 1, warmup=0), median_seconds(run_policy, 1, warmup=0))
               for _ in range(args.rounds)]
-    rollout_rate = agents * args.steps / statistics.median(r for r, _ in rounds)
+    seconds_rollout = statistics.median(r for r, _ in rounds)
+    seconds_env = statistics.median(r - p for r, p in rounds)
+    rollout_rate = agents * args.steps / seconds_rollout
     policy_rate = agents * args.steps / statistics.median(p for _, p in rounds)
     ratio = statistics.median(p / r for r, p in rounds)
 
@@ -95,6 +99,11 @@ def main() -> None:
 
     emit("train.update_samples_per_s", samples / seconds_update, "samples/s",
          epochs=cfg.ppo.epochs, **shape)
+    # What the ratio is for: how much of a training iteration (one rollout of --steps
+    # steps and its PPO update) the environment takes, the rollout minus the policy.
+    emit("train.env_share_of_iteration", seconds_env / (seconds_rollout + seconds_update),
+         "fraction", epochs=cfg.ppo.epochs, env_s=round(seconds_env, 3),
+         rollout_s=round(seconds_rollout, 3), update_s=round(seconds_update, 3), **shape)
 
 
 if __name__ == "__main__":
