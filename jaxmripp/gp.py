@@ -309,7 +309,6 @@ def _gram(a: jax.Array, b: jax.Array) -> jax.Array:
     return jnp.einsum("hp,hq->pq", a, b)
 
 
-@_float32_matmuls
 def add_block(
     state: GPState,
     poses: jax.Array,
@@ -318,7 +317,26 @@ def add_block(
     eval_poses: jax.Array,
     enabled: jax.Array | None = None,
 ) -> GPState:
+    """Adds K observations (poses (K, 4), values (K,)) at once; see `add_block_first_trace`
+    (XLA drops the first point's trace when it is not used)."""
+    return add_block_first_trace(state, poses, values, cfg, eval_poses, enabled)[0]
+
+
+@_float32_matmuls
+def add_block_first_trace(
+    state: GPState,
+    poses: jax.Array,
+    values: jax.Array,
+    cfg: GPConfig,
+    eval_poses: jax.Array,
+    enabled: jax.Array | None = None,
+) -> tuple[GPState, jax.Array]:
     """Adds K observations (poses (K, 4), values (K,)) at once, skipping disabled ones.
+
+    Returns the new state and the trace a single `add` of the first point would have left
+    (the state's trace when the first point is disabled): the environment feeds each
+    robot's own pose and its peers' as one block and still gets the own pose's trace
+    drop, its exploration reward, exactly.
 
     The result is the state K sequential `add`s would give (the same slots, stamps,
     first-in first-out evictions, posterior and trace, to float32 rounding) at about the
@@ -337,6 +355,14 @@ def add_block(
       |W G|^2 summed, G = k(X, E) - B^T C, and the weights gain
       (E_J - B) S^-1 (values - B^T y).
     R is read for R Kx, for R^T [Q^T L, V, R_E] (one product) and for the final write.
+
+    The first point's own trace change, from quantities the block has anyway (O(K M)):
+    its eviction is row 0 of the rise (the evictions are taken in order), but its
+    insertion above is conditioned on the kept points S only, while a lone add of it would
+    also keep the block's later evictions F. The posterior of y_E given S is
+    Sigma_EE = A_EE^-1 with cross-covariances A_EE^-1 A_E^T C to E, so conditioning x's
+    predictive variance s and covariance g with E on F as well is one more Schur
+    complement: s - c Sigma_FF^-1 c^T and g - c Sigma_FF^-1 G_F, c = k(x, F) - b^T k(S, F).
     """
     h, m, k = cfg.capacity, eval_poses.shape[0], poses.shape[0]
     if k > h:
@@ -429,7 +455,27 @@ def add_block(
     a_at_slots = jnp.where(enabled[:, None], a_e[clipped], 0.0)  # (K, K) rows J of A_E
     a_c = a_c + _small_dot(a_at_slots.T, jnp.where(enabled[:, None], evicted_cross - cross, 0.0))
     rise = jnp.sum(_small_dot(t_e_inv.T, a_c) ** 2)
-    drop = jnp.sum(_small_dot(w_mat, jnp.where(enabled[:, None], cross - b_c, 0.0)) ** 2)
+    gain = jnp.where(enabled[:, None], cross - b_c, 0.0)  # G, (K, M)
+    drop = jnp.sum(_small_dot(w_mat, gain) ** 2)
+
+    # The first point as a lone add would see it (see the docstring); T_E^-T is lower
+    # triangular, so row 0 of the rise is its own eviction.
+    later = evicting & (jnp.arange(k) > 0)  # F
+    both_later = later[:, None] & later[None, :]
+    sigma_ee = _small_dot(t_e_inv, t_e_inv.T)  # A_EE^-1
+    w_f = _lower_inverse(_lower_cholesky(
+        jnp.where(both_later, sigma_ee, 0.0) + jnp.diag(jnp.where(later, 0.0, 1.0)), cfg.noise))
+    evicted_features = state.features[:, clipped]
+    c_f = feature_kernel(x_features[:, :1], evicted_features, cfg)[0] \
+        - _gram(b_mat[:, :1], feature_kernel(state.features, evicted_features, cfg))[0]
+    u = _small_dot(w_f, jnp.where(later, c_f, 0.0)[:, None])  # (K, 1)
+    g_f = _small_dot(w_f, jnp.where(later[:, None], _small_dot(sigma_ee, a_c), 0.0))
+    s_first = jnp.maximum(s_mat[0, 0] - jnp.sum(u**2), cfg.noise)
+    drop_first = jnp.sum((gain[0] - _small_dot(u.T, g_f)[0]) ** 2) / s_first
+    rise_first = jnp.sum((t_e_inv[0, 0] * a_c[0]) ** 2)
+    first_trace = jnp.where(enabled[0],
+                            jnp.clip(state.trace + rise_first - drop_first, 0.0, m * cfg.variance),
+                            state.trace)
 
     return GPState(
         inputs=state.inputs.at[slots].set(x, mode="drop"),
@@ -442,7 +488,7 @@ def add_block(
         count=state.count + jnp.sum(enabled),
         eval_cross=eval_cross,
         trace=jnp.clip(state.trace + rise - drop, 0.0, m * cfg.variance),
-    )
+    ), first_trace
 
 
 BLOCK = 4  # most points per `add_block` in `add_many` (its algebra is unrolled, O(K^3))

@@ -218,6 +218,7 @@ def test_add_and_predict_are_traced_once():
 
 
 _add_block = jax.jit(chex.assert_max_traces(gp.add_block, n=3), static_argnames="cfg")
+_add_block_first_trace = jax.jit(gp.add_block_first_trace, static_argnames="cfg")
 
 
 @pytest.mark.parametrize("filled", [5, 14, 30])  # filling, filling up mid-block, evicting
@@ -238,6 +239,13 @@ def test_block_equals_sequential_adds_and_the_dense_reference(filled):
         for p, v, e in zip(block_poses, block_values, enabled):
             sequential = add(sequential, p, v, cfg, eval_poses, e)
         block = _add_block(state, block_poses, block_values, cfg, eval_poses, np.array(enabled))
+        # The first point's trace is what a lone add of it leaves, also when the block's
+        # later points evict (filled = 14: some, 30: all of them).
+        first = add(state, block_poses[0], block_values[0], cfg, eval_poses, enabled[0])
+        tracked, first_trace = _add_block_first_trace(state, block_poses, block_values, cfg,
+                                                      eval_poses, np.array(enabled))
+        np.testing.assert_allclose(first_trace, first.trace, rtol=1e-5)
+        np.testing.assert_allclose(tracked.trace, block.trace, rtol=1e-6)
         chex.assert_trees_all_equal(
             (block.valid, block.stamp, block.count, block.inputs, block.targets),
             (sequential.valid, sequential.stamp, sequential.count, sequential.inputs,
