@@ -309,11 +309,12 @@ def _feed_gps(state: EnvState, params: EnvParams):
         # gp.add_block_first_trace still gives the own pose's trace drop exactly.
         lead = gp.BLOCK - 1
         before = jax.vmap(gp.covariance_trace)(state.utility_gp)
-        joined = [jnp.concatenate([own[:, None], peer[:, :lead]], axis=1) for own, peer in
-                  ((own_pose, pose), (own_value, value), (own_pending, pending))]
+        block_pose, block_value, block_pending = (
+            jnp.concatenate([own[:, None], peer[:, :lead]], axis=1) for own, peer in
+            ((own_pose, pose), (own_value, value), (own_pending, pending)))
         utility_gp, own_trace = jax.vmap(
             gp.add_block_first_trace, in_axes=(0, 0, 0, None, None, 0))(
-            state.utility_gp, joined[0], joined[1], cfg, eval_poses, joined[2])
+            state.utility_gp, block_pose, block_value, cfg, eval_poses, block_pending)
         reward_exploration = _relative_drop(before, own_trace)
         utility_gp = add_many(utility_gp, pose[:, lead:], value[:, lead:], cfg, eval_poses,
                               pending[:, lead:])

@@ -451,7 +451,8 @@ def add_block_first_trace(
     eval_cross = state.eval_cross.at[slots].set(cross, mode="drop")
     ab = jnp.concatenate([a_e, b_mat], axis=1).T  # (2K, H)
     a_c, b_c = jnp.split(jnp.sum(ab[:, :, None] * eval_cross[None], axis=1), 2)
-    evicted_cross = feature_kernel(state.features[:, clipped], eval_features, cfg)  # (K, M)
+    evicted_features = state.features[:, clipped]  # (5, K)
+    evicted_cross = feature_kernel(evicted_features, eval_features, cfg)  # (K, M)
     a_at_slots = jnp.where(enabled[:, None], a_e[clipped], 0.0)  # (K, K) rows J of A_E
     a_c = a_c + _small_dot(a_at_slots.T, jnp.where(enabled[:, None], evicted_cross - cross, 0.0))
     rise = jnp.sum(_small_dot(t_e_inv.T, a_c) ** 2)
@@ -465,7 +466,6 @@ def add_block_first_trace(
     sigma_ee = _small_dot(t_e_inv, t_e_inv.T)  # A_EE^-1
     w_f = _lower_inverse(_lower_cholesky(
         jnp.where(both_later, sigma_ee, 0.0) + jnp.diag(jnp.where(later, 0.0, 1.0)), cfg.noise))
-    evicted_features = state.features[:, clipped]
     c_f = feature_kernel(x_features[:, :1], evicted_features, cfg)[0] \
         - _gram(b_mat[:, :1], feature_kernel(state.features, evicted_features, cfg))[0]
     u = _small_dot(w_f, jnp.where(later, c_f, 0.0)[:, None])  # (K, 1)
