@@ -51,7 +51,8 @@ def main(argv=None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
-    from jaxmripp import pipeline, sweep  # noqa: PLC0415 (after argument errors)
+    from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
+    from jaxmripp.evaluation import sweep  # noqa: PLC0415 (after argument errors)
 
     planners = {}
     for name, run_dir in policies:

@@ -7,7 +7,7 @@ from pathlib import Path
 from jaxmripp import allocator
 from jaxmripp import config as cfgmod
 from jaxmripp import pipeline
-from jaxmripp import train as trainmod
+from jaxmripp.learn import train as trainmod
 
 
 def main(argv=None) -> int:

@@ -32,9 +32,11 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from common import batch_arguments, emit, median_seconds  # noqa: E402
-from jaxmripp import baselines, config, gp, sensing  # noqa: E402
-from jaxmripp import candidates as cands  # noqa: E402
-from jaxmripp import env as envmod  # noqa: E402
+from jaxmripp.evaluation import baselines  # noqa: E402
+from jaxmripp import config  # noqa: E402
+from jaxmripp.sim import gp, sensing  # noqa: E402
+from jaxmripp.sim import candidates as cands  # noqa: E402
+from jaxmripp.sim import env as envmod  # noqa: E402
 
 
 def build(args):

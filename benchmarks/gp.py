@@ -31,9 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from common import emit, median_seconds  # noqa: E402
 
-from jaxmripp import gp  # noqa: E402
+from jaxmripp.sim import gp  # noqa: E402
 from jaxmripp.config import GPConfig  # noqa: E402
-from jaxmripp.geometry import HEADING_ANGLES  # noqa: E402
+from jaxmripp.sim.geometry import HEADING_ANGLES  # noqa: E402
 
 GPS, CANDIDATES, STEPS, ROUNDS = 1024 * 3, 80, 8, 7
 BLOCK_POINTS = 3  # radio rounds per step for N = 3 robots (env._feed_gps)

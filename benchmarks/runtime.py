@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
 from jaxmripp.runtime import NumpyPolicy, OnboardPlanner  # noqa: E402
 from jaxmripp.runtime import weights as fmt  # noqa: E402
-from jaxmripp.runtime.demo import fly  # noqa: E402  (imports jax only inside main)
+from jaxmripp.demo import fly  # noqa: E402  (imports jax only inside main)
 from jaxmripp.runtime.mapping import HEADING_VECTORS  # noqa: E402
 
 N, BUDGET, MIN_DECISIONS, WARMUP_EPISODES = 3, 10.0, 600, 1
@@ -50,7 +50,7 @@ def emit(name: str, value: float, unit: str, **extra) -> None:
 
 
 def random_weights(cfg: Config, rng) -> dict[str, np.ndarray]:
-    """Weights of the default policy's shapes (jaxmripp.policy's parameter names)."""
+    """Weights of the default policy's shapes (jaxmripp.learn.policy's parameter names)."""
     w, ff = cfg.policy.width, cfg.policy.width * cfg.policy.ff_mult
     shapes = {"embed": (len(fmt.FEATURES), w), "state_embed": (len(fmt.ROBOT_STATE), w),
               "query": (2 * w, w), "pointer_query": (w, w), "pointer_key": (w, w),

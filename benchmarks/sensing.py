@@ -17,7 +17,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from common import batch_arguments, emit, median_cpu_seconds, median_seconds  # noqa: E402
-from jaxmripp import sensing, world  # noqa: E402
+from jaxmripp.sim import sensing, world  # noqa: E402
 from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
 
 

@@ -27,8 +27,8 @@ import jax.numpy as jnp  # noqa: E402
 
 from common import emit, median_seconds  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
-from jaxmripp import ppo  # noqa: E402
-from jaxmripp import train as trainmod  # noqa: E402
+from jaxmripp.learn import ppo  # noqa: E402
+from jaxmripp.learn import train as trainmod  # noqa: E402
 
 
 def main() -> None:

@@ -15,20 +15,20 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from jaxmripp import policy as policymod
+from jaxmripp.learn import policy as policymod
 from jaxmripp.config import Config
-from jaxmripp.observation import FEATURES, ROBOT_STATE
+from jaxmripp.sim.observation import FEATURES, ROBOT_STATE
 from jaxmripp.runtime import weights as fmt
 
 
 def header(cfg: Config, source: dict | None = None) -> dict[str, Any]:
     """The policy.json header of `cfg` (without the weights block, which `export` adds).
 
-    The layout comes from jaxmripp.observation; `fmt.header` writes the runtime's copy, so
+    The layout comes from jaxmripp.sim.observation; `fmt.header` writes the runtime's copy, so
     a drift between the two fails here, at export time, instead of onboard.
     """
     if (tuple(FEATURES), tuple(ROBOT_STATE)) != (fmt.FEATURES, fmt.ROBOT_STATE):
-        raise RuntimeError("jaxmripp.observation's layout differs from jaxmripp.runtime's")
+        raise RuntimeError("jaxmripp.sim.observation's layout differs from jaxmripp.runtime's")
     central_critic = cfg.ppo.algo == "mappo"
     return fmt.header(cfg, policymod.runtime_config(cfg.policy, central_critic), source)
 
@@ -43,8 +43,8 @@ def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | No
                ) -> tuple[Path, Path]:
     """Restores a training run's checkpoint and exports it (default: RUN_DIR/export)."""
     from jaxmripp import config as cfgmod
-    from jaxmripp.checkpoint import Checkpoints
-    from jaxmripp.train import Trainer
+    from jaxmripp.learn.checkpoint import Checkpoints
+    from jaxmripp.learn.train import Trainer
 
     import jax
 
@@ -69,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--best", action="store_true", help="export the best checkpoint")
     parser.add_argument("--out", type=Path, default=None, help="default: RUN_DIR/export")
     args = parser.parse_args(argv)
-    from jaxmripp.checkpoint import CheckpointError
+    from jaxmripp.learn.checkpoint import CheckpointError
     from jaxmripp.config import ConfigError
 
     try:

@@ -9,9 +9,10 @@ from typing import Callable
 import jax
 import numpy as np
 
-from jaxmripp import baselines, episode, evaluate, viz
-from jaxmripp import train as trainmod
-from jaxmripp.checkpoint import Checkpoints
+from jaxmripp.evaluation import baselines, evaluate, viz
+from jaxmripp.sim import episode
+from jaxmripp.learn import train as trainmod
+from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
 
 

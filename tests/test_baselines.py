@@ -9,9 +9,11 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import baselines, config, evaluate, geometry, world
+from jaxmripp.evaluation import baselines, evaluate
+from jaxmripp import config
+from jaxmripp.sim import geometry, world
 from jaxmripp.config import WorldConfig
-from jaxmripp.observation import FEATURES, Observation
+from jaxmripp.sim.observation import FEATURES, Observation
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"xla_backend_optimization_level": 0}
@@ -76,7 +78,7 @@ def test_oracle_robots_do_not_claim_the_same_windows():
     """Two robots at one spot with the same candidates (one position, four headings): the
     first takes the heading that sees most windows, the second the one that sees most of
     the rest."""
-    from jaxmripp import sensing
+    from jaxmripp.sim import sensing
 
     size = 20
     wcfg = WorldConfig(size=size, buildings=25, targets=(200, 250), layout="random")

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import candidates, geometry
+from jaxmripp.sim import candidates, geometry
 from jaxmripp.config import CandidateConfig, RobotConfig
 
 G = 50

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import comms
+from jaxmripp.sim import comms
 
 exchange = jax.jit(comms.exchange, static_argnames="relay")
 contacts = jax.jit(comms.contacts)

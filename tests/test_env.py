@@ -1,4 +1,4 @@
-"""The multi-robot environment (jaxmripp.env): jit / vmap, invariants, radio, rewards.
+"""The multi-robot environment (jaxmripp.sim.env): jit / vmap, invariants, radio, rewards.
 
 Compilation dominates the cost of these tests, so every jitted function is built once per
 module (fixtures below) and compiled with LLVM optimisation off (`FAST`: about half the
@@ -21,10 +21,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import baselines, config, episode, geometry, gp, sensing
-from jaxmripp import world as worldmod
-from jaxmripp import env as envmod
-from jaxmripp.baselines import Planner
+from jaxmripp.evaluation import baselines
+from jaxmripp import config
+from jaxmripp.sim import episode, geometry, gp, sensing
+from jaxmripp.sim import world as worldmod
+from jaxmripp.sim import env as envmod
+from jaxmripp.evaluation.baselines import Planner
 
 REPO = Path(__file__).resolve().parents[1]
 CFG = config.load(REPO / "configs/smoke.yaml",
@@ -120,7 +122,7 @@ def rollout(fns):
 
 
 # ---------------------------------------------------------------------------------------
-# A dense float64 NumPy GP, independent of jaxmripp.gp, for the reward checks
+# A dense float64 NumPy GP, independent of jaxmripp.sim.gp, for the reward checks
 
 
 def np_kernel(a, b, cfg):

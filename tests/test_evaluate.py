@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxmripp import config, evaluate, sweep
+from jaxmripp import config
+from jaxmripp.evaluation import evaluate, sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"xla_backend_optimization_level": 0}  # compile fast; these tests run tiny worlds

@@ -10,9 +10,9 @@ import pytest
 from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial.distance import cdist
 
-from jaxmripp import gp
+from jaxmripp.sim import gp
 from jaxmripp.config import GPConfig
-from jaxmripp.geometry import HEADING_ANGLES
+from jaxmripp.sim.geometry import HEADING_ANGLES
 
 RTOL, ATOL = 1e-3, 1e-4  # relative, with an absolute floor (values and variances are O(1))
 

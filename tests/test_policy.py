@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 
 from jaxmripp.config import PolicyConfig
-from jaxmripp.observation import N_FEATURES, Observation, global_state_size
-from jaxmripp.policy import (
+from jaxmripp.sim.observation import N_FEATURES, Observation, global_state_size
+from jaxmripp.learn.policy import (
     ActorCritic,
     distribution,
     flatten_params,

@@ -15,8 +15,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import candidates as jax_candidates
-from jaxmripp import config, export, gp as jax_gp, observation, policy as policymod, ppo
+from jaxmripp.sim import candidates as jax_candidates
+from jaxmripp import config, export
+from jaxmripp.sim import gp as jax_gp, observation
+from jaxmripp.learn import policy as policymod, ppo
 from jaxmripp.config import GPConfig
 from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError, MessageError,
                               OnboardPlanner, PlannerStateError, ProtocolVersionError,

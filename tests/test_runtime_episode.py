@@ -27,7 +27,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import baselines, comms, config, env as envmod, export, sensing
+from jaxmripp.evaluation import baselines
+from jaxmripp.sim import comms, env as envmod, sensing
+from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
 from test_runtime import REPO, _slab_hits, init_params
 

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import geometry, sensing, world
+from jaxmripp.sim import geometry, sensing, world
 from jaxmripp.config import SensorConfig, WorldConfig
 
 _cast = jax.jit(sensing.cast, static_argnums=(3, 4))

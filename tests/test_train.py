@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from jaxmripp import config as cfgmod
-from jaxmripp import ppo
-from jaxmripp import train as trainmod
-from jaxmripp.checkpoint import Checkpoints, CheckpointError
+from jaxmripp.learn import ppo
+from jaxmripp.learn import train as trainmod
+from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
 
 
 @pytest.fixture(scope="module")

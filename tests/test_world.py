@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import ndimage
 
-from jaxmripp import geometry, world
+from jaxmripp.sim import geometry, world
 from jaxmripp.config import WorldConfig
 
 _generate = jax.jit(world.generate, static_argnums=1)

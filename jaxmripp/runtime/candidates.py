@@ -1,4 +1,4 @@
-"""NumPy port of `jaxmripp.candidates.sample`: the same rules, a NumPy random source.
+"""NumPy port of `jaxmripp.sim.candidates.sample`: the same rules, a NumPy random source.
 
 Draw 0 is the current position (turning in place); the other draws are uniform on the
 shell [lo, hi] around the robot. A draw is kept when it lies in the unit cube, its straight
@@ -24,7 +24,7 @@ F32 = np.float32
 
 
 class Candidates(NamedTuple):
-    """L = 4 K poses; index = slot * 4 + heading (jaxmripp.candidates.Candidates)."""
+    """L = 4 K poses; index = slot * 4 + heading (jaxmripp.sim.candidates.Candidates)."""
 
     position: np.ndarray  # (L, 3) float32
     heading: np.ndarray  # (L,) int32

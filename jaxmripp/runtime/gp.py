@@ -1,4 +1,4 @@
-"""NumPy port of `jaxmripp.gp`: the same fixed-capacity GP, update for update.
+"""NumPy port of `jaxmripp.sim.gp`: the same fixed-capacity GP, update for update.
 
 Same kernel (Matern-1/2 over (x, y, z) plus the heading on a circle of radius
 heading_scale), same square root R of the inverse kernel matrix extended by one border row
@@ -27,7 +27,7 @@ def _features(poses: np.ndarray, heading_scale: float) -> np.ndarray:
 
 
 def kernel(a: np.ndarray, b: np.ndarray, spec: GPSpec) -> np.ndarray:
-    """(A, 4), (B, 4) float32 poses -> (A, B) float32 covariances (jaxmripp.gp.kernel)."""
+    """(A, 4), (B, 4) float32 poses -> (A, B) float32 covariances (jaxmripp.sim.gp.kernel)."""
     fa, fb = _features(a, spec.heading_scale), _features(b, spec.heading_scale)
     dist2 = np.square(fa[0][:, None] - fb[0][None, :])
     for c in range(1, 5):
@@ -37,7 +37,7 @@ def kernel(a: np.ndarray, b: np.ndarray, spec: GPSpec) -> np.ndarray:
 
 
 class GaussianProcess:
-    """One GP over poses with capacity H; see jaxmripp.gp.GPState for the fields."""
+    """One GP over poses with capacity H; see jaxmripp.sim.gp.GPState for the fields."""
 
     def __init__(self, spec: GPSpec, eval_poses: np.ndarray | None = None):
         h = spec.capacity
@@ -60,7 +60,7 @@ class GaussianProcess:
         return int(self.valid.sum())
 
     def add(self, pose, value) -> None:
-        """Adds (pose (4,), value); when full, the oldest point goes first (jaxmripp.gp.add)."""
+        """Adds (pose (4,), value); when full, the oldest point goes first (jaxmripp.sim.gp.add)."""
         spec, h = self.spec, self.spec.capacity
         x = np.asarray(pose, F32).reshape(4)
         slot = self.count % h
@@ -120,7 +120,7 @@ class GaussianProcess:
 
 
 def evaluation_poses(spec: GPSpec) -> np.ndarray:
-    """(M, 4) the trace evaluation set of jaxmripp.gp.evaluation_poses."""
+    """(M, 4) the trace evaluation set of jaxmripp.sim.gp.evaluation_poses."""
     g = spec.eval_grid
     centres = (np.arange(g, dtype=F32) + F32(0.5)) / F32(g)
     grid = np.stack(np.meshgrid(centres, centres, centres, indexing="ij"), axis=-1).reshape(-1, 3)

@@ -1,13 +1,11 @@
 """A robot's own occupancy map and the geometry it needs, in NumPy.
 
-Mirrors jaxmripp.geometry (redefined here: that module imports jax): positions live in
-the unit cube, a world of G voxels per side maps position p to voxel floor(p G) clipped to
-the grid, the map is a C-ordered (G, G, G) grid of codes FREE / UNKNOWN / OCCUPIED, and the
-four headings are +x, +y, -x, -y at angles 0, pi/2, pi, 3 pi/2.
+Codes, headings and the segment rule are those of `jaxmripp.spec.grid`; this module is
+their NumPy implementation (`jaxmripp.sim.geometry` is the JAX one).
 
 Two segment tests:
-- `sampled_clear`: the candidate rule of jaxmripp.candidates (half-voxel samples from the
-  start, excluded, to the end), used to sample candidates exactly as the JAX env does;
+- `sampled_clear`: the candidate rule of jaxmripp.sim.geometry.mapped_clear (the spec's
+  segment points), used to sample candidates exactly as the JAX env does;
 - `exact_clear`: every voxel whose interior the segment passes through, start voxel
   included (a voxel traversal, no sampling), used by the safety filter, so a returned pose
   never crosses a voxel the robot knows to be occupied, not even at a corner the sampled
@@ -20,10 +18,8 @@ import math
 
 import numpy as np
 
-FREE, UNKNOWN, OCCUPIED = 0, 1, 2
-N_HEADINGS = 4
-HEADING_ANGLES = np.arange(N_HEADINGS, dtype=np.float32) * np.float32(math.pi / 2)
-HEADING_VECTORS = np.array([[1, 0, 0], [0, 1, 0], [-1, 0, 0], [0, -1, 0]], dtype=np.float32)
+from jaxmripp.spec.grid import (HEADING_ANGLES, HEADING_VECTORS, N_HEADINGS, OCCUPIED,  # noqa: F401
+                                UNKNOWN, segment_samples)
 
 
 def voxel_of(position: np.ndarray, size: int) -> np.ndarray:
@@ -40,15 +36,15 @@ def inside_world(position: np.ndarray) -> np.ndarray:
     return np.all((position >= 0.0) & (position <= 1.0), axis=-1)
 
 
-def segment_samples(size: int, max_length: float) -> int:
-    """Samples needed to step a segment of max_length at half-voxel spacing."""
-    return max(2, int(math.ceil(2 * max_length * size)) + 1)
 
-
-def segment_points(start: np.ndarray, ends: np.ndarray, count: int) -> np.ndarray:
-    """(3,), (M, 3) -> (M, count, 3) points from start (excluded) to each end (included)."""
+def segment_voxels(start: np.ndarray, ends: np.ndarray, size: int,
+                   max_length: float) -> tuple[np.ndarray, np.ndarray]:
+    """(3,), (M, 3) -> points and voxels (M, n, 3) of the spec's segment rule
+    (`jaxmripp.spec.grid`; `jaxmripp.sim.geometry.segment_voxels` in JAX)."""
+    count = segment_samples(size, max_length)
     t = np.arange(1, count + 1, dtype=np.float32) / np.float32(count)
-    return start + t[None, :, None] * (ends - start)[:, None, :]
+    points = start + t[None, :, None] * (ends - start)[:, None, :]
+    return points, voxel_of(points, size)
 
 
 class OccupancyMap:
@@ -73,13 +69,11 @@ class OccupancyMap:
     def sampled_clear(self, start: np.ndarray, ends: np.ndarray, max_length: float) -> np.ndarray:
         """(3,), (M, 3) -> (M,) True where no half-voxel sample is mapped OCCUPIED.
 
-        jaxmripp.candidates._line_of_flight_clear: the sample count is fixed by the
-        longest segment (max_length); unknown voxels count as free.
+        jaxmripp.sim.geometry.mapped_clear: the sample count is fixed by the longest
+        segment (max_length); unknown voxels count as free.
         """
-        count = segment_samples(self.size, max_length)
-        points = segment_points(start, ends, count)
-        cells = linear_index(voxel_of(points, self.size), self.size)
-        return np.all(self.codes[cells] != OCCUPIED, axis=-1)
+        _, voxels = segment_voxels(start, ends, self.size, max_length)
+        return np.all(self.codes[linear_index(voxels, self.size)] != OCCUPIED, axis=-1)
 
     def exact_clear(self, start: np.ndarray, ends: np.ndarray) -> np.ndarray:
         """(3,), (M, 3) -> (M,) True where no voxel the segment passes through is OCCUPIED.

@@ -1,17 +1,8 @@
-"""Radio messages between robots: plain, versioned, serialisable records (JSON bytes).
+"""Radio messages between robots: encoding and validation of the format that
+`jaxmripp.spec.protocol` defines (type tag, version, fields, float rule).
 
-A robot broadcasts what the paper's single-hop radio exchanges: its own visited waypoints
-(poses, in order, with the normalised number of windows seen from each) and its current
-position. Histories only grow, so a message carries them from some index `start` on and a
-receiver appends what it does not have yet.
-
-Wire format (UTF-8 JSON object, protocol version PROTOCOL_VERSION = 1):
-    {"type": "jaxmripp.waypoints", "protocol": 1, "sender": 2,
-     "position": [x, y, z], "heading": 1, "start": 0,
-     "poses": [[x, y, z, angle], ...], "utilities": [u, ...]}
-Floats are float32 values written as the shortest decimal that reads back to the same
-double, so a pose survives the round trip bit for bit. Receivers refuse newer protocols
-(`ProtocolVersionError`) and malformed records (`MessageError`), with one-line messages.
+Receivers refuse newer protocols (`ProtocolVersionError`) and malformed records
+(`MessageError`), with one-line messages.
 """
 
 from __future__ import annotations
@@ -23,10 +14,9 @@ import math
 import numpy as np
 
 from jaxmripp.runtime.errors import MessageError, ProtocolVersionError
+from jaxmripp.spec.grid import N_HEADINGS
+from jaxmripp.spec.protocol import MAX_BYTES, MESSAGE_TYPE, PROTOCOL_VERSION
 
-PROTOCOL_VERSION = 1
-MESSAGE_TYPE = "jaxmripp.waypoints"
-MAX_BYTES = 1 << 20  # a history of thousands of poses is still far below this
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,8 +84,8 @@ def decode(data: bytes | str) -> Message:
     where = f"radio message from robot {sender}"
     position = _vector(record.get("position"), 3, f"{where}: position")
     heading = record.get("heading")
-    if not _is_int(heading) or not 0 <= heading < 4:
-        raise MessageError(f"{where}: heading {heading!r} is not in 0..3")
+    if not _is_int(heading) or not 0 <= heading < N_HEADINGS:
+        raise MessageError(f"{where}: heading {heading!r} is not in 0..{N_HEADINGS - 1}")
     start = record.get("start")
     if not _is_int(start) or start < 0:
         raise MessageError(f"{where}: start {start!r} is not a non-negative integer")

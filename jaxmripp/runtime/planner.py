@@ -12,9 +12,9 @@ number of windows seen from it, and writes the observed voxels into the map. `re
 stores what a neighbour visited and where it is now. `decide` feeds the GPs (own newest
 pose first, then N - 1 + `gp.catchup_rounds` peer rounds, each taking the oldest pending
 pose of the peer with the largest backlog), draws candidate poses (or takes ones
-supplied by the caller), builds the policy's inputs exactly as `jaxmripp.env.observe`
+supplied by the caller), builds the policy's inputs exactly as `jaxmripp.sim.env.observe`
 does, and picks the next pose with the exported policy or the greedy rule of
-`jaxmripp.baselines.greedy_planner`.
+`jaxmripp.evaluation.baselines.greedy_planner`.
 
 Safety filter: whatever picks the pose, it is chosen among candidates whose straight flight
 crosses no voxel the robot knows to be OCCUPIED (exact voxel traversal, start voxel
@@ -42,7 +42,7 @@ from jaxmripp.runtime import messages
 from jaxmripp.runtime.errors import InvalidPoseError, MessageError, PlannerStateError
 from jaxmripp.runtime.gp import GaussianProcess
 from jaxmripp.runtime.mapping import (HEADING_ANGLES, N_HEADINGS, OCCUPIED, OccupancyMap,
-                                      segment_points, segment_samples, voxel_of)
+                                      segment_voxels)
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.weights import FEATURES, RuntimeSpec
 
@@ -135,7 +135,7 @@ class OnboardPlanner:
         self.peer_fed: dict[int, int] = {j: 0 for j in self._peer_ids()}
         self.contacts: dict[int, np.ndarray] = {}
         self._command: tuple[np.ndarray, np.ndarray] | None = None  # (from, to) of last move
-        # jaxmripp.env._feed_gps: peers by offset 1..n-1 (its tie order), a fixed round count.
+        # jaxmripp.sim.env._feed_gps: peers by offset 1..n-1 (its tie order), a fixed round count.
         n = team_size
         self._peers_by_offset = [(self.id + offset) % n for offset in range(1, n)]
         self._peer_rounds = n - 1 + spec.gp.catchup_rounds if n > 1 else 0
@@ -305,18 +305,17 @@ class OnboardPlanner:
     def _bumped_voxel(self, stop: np.ndarray) -> np.ndarray:
         """The voxel ahead of where the robot stopped on its commanded segment.
 
-        jaxmripp.env._fly: samples at the candidate spacing; a blocked robot stops at the
+        jaxmripp.sim.env._fly: samples at the candidate spacing; a blocked robot stops at the
         last free sample (or its start) and the next sample's voxel is the obstacle.
         """
         start, end = self._command
-        count = segment_samples(self.spec.size, self.spec.shell[1])
-        points = segment_points(start, end[None], count)[0]
-        stops = np.concatenate([start[None], points[:-1]])
+        points, voxels = segment_voxels(start, end[None], self.spec.size, self.spec.shell[1])
+        stops = np.concatenate([start[None], points[0, :-1]])
         first = int(np.argmin(np.sum(np.square(stops - stop), axis=-1)))
-        return voxel_of(points[first], self.spec.size)
+        return voxels[0, first]
 
     def _feed_gps(self) -> None:
-        """jaxmripp.env._feed_gps for this robot: own pose, then the largest backlogs."""
+        """jaxmripp.sim.env._feed_gps for this robot: own pose, then the largest backlogs."""
         if self.own_fed < len(self.history_pose):
             self.utility_gp.add(self.history_pose[self.own_fed], self.history_utility[self.own_fed])
             self.own_fed += 1
@@ -336,7 +335,7 @@ class OnboardPlanner:
         return np.stack(list(self.contacts.values())).astype(F32)
 
     def _features(self, c: cands.Candidates) -> tuple[np.ndarray, np.ndarray]:
-        """Per-candidate features and robot state, as jaxmripp.env.observe builds them."""
+        """Per-candidate features and robot state, as jaxmripp.sim.env.observe builds them."""
         poses = np.concatenate([c.position, HEADING_ANGLES[c.heading][:, None]], axis=1)
         u_mean, u_var = self.utility_gp.predict(poses)
         c_mean, c_var = self.comm_gp.predict(poses)

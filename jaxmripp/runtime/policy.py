@@ -1,7 +1,7 @@
-"""NumPy mirror of `jaxmripp.policy.ActorCritic`'s forward pass, for onboard inference.
+"""NumPy mirror of `jaxmripp.learn.policy.ActorCritic`'s forward pass, for onboard inference.
 
-Weights come from `jaxmripp.policy.flatten_params` ("/"-joined module paths -> arrays);
-the architecture description from `jaxmripp.policy.runtime_config`. The functions below
+Weights come from `jaxmripp.learn.policy.flatten_params` ("/"-joined module paths -> arrays);
+the architecture description from `jaxmripp.learn.policy.runtime_config`. The functions below
 follow the Flax code line for line (same names, same masking floor, same two-pass
 LayerNorm), so both agree to float32 rounding. This module must import nothing but NumPy.
 
@@ -16,11 +16,11 @@ from typing import Mapping
 
 import numpy as np
 
-from jaxmripp.runtime.layout import FEATURES
+from jaxmripp.spec.layout import FEATURES
 
-LOGIT_CLIP = 10.0  # jaxmripp.policy.LOGIT_CLIP
+LOGIT_CLIP = 10.0  # jaxmripp.learn.policy.LOGIT_CLIP
 LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm default
-_FLOOR = np.finfo(np.float32).min  # jaxmripp.policy.masked_logits
+_FLOOR = np.finfo(np.float32).min  # jaxmripp.learn.policy.masked_logits
 
 
 def _masked(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -41,7 +41,7 @@ def _relu(x: np.ndarray) -> np.ndarray:
 
 
 def _required_names(layers: int, central_critic: bool) -> list[str]:
-    """Every weight name the forward pass reads (see jaxmripp.policy's module doc)."""
+    """Every weight name the forward pass reads (see jaxmripp.learn.policy's module doc)."""
     dense = lambda n: [f"{n}/kernel", f"{n}/bias"]  # noqa: E731
     norm = lambda n: [f"{n}/scale", f"{n}/bias"]  # noqa: E731
 
@@ -138,7 +138,7 @@ class NumpyPolicy:
         new_memory, logits, _ = self(memory, features, mask, robot_state)
         return new_memory, int(np.argmax(logits))
 
-    # Layers, in jaxmripp.policy's naming.
+    # Layers, in jaxmripp.learn.policy's naming.
 
     def _dense(self, name, x, bias=True):
         y = x @ self.w[f"{name}/kernel"]

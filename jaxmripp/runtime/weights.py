@@ -12,12 +12,12 @@ policy.json
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
                       world.size, sensor.*, candidates.*, robots.*, radio.*, gp.*,
                       reward.utility_norm, episode.max_steps; infinities are the string "inf"
-    policy            jaxmripp.policy.runtime_config (width, heads, layers, ff_mult,
+    policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
                       central_critic)
     weights           {"file": "policy.npz", "sha256": ..., "arrays": n, "parameters": n}
     source            free-form provenance (run directory, checkpoint step)
 
-policy.npz: one float32 array per "/"-joined parameter path (jaxmripp.policy.flatten_params).
+policy.npz: one float32 array per "/"-joined parameter path (jaxmripp.learn.policy.flatten_params).
 The sha256 is over the arrays, not the zip bytes (zip entries carry timestamps): for each
 name in sorted order, the name, dtype, shape and little-endian bytes (see `weights_sha256`).
 """
@@ -37,7 +37,7 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
-from jaxmripp.runtime.layout import FEATURES, ROBOT_STATE
+from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 from jaxmripp.runtime.policy import NumpyPolicy
 
 FORMAT = "jaxmripp-policy"

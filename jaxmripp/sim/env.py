@@ -17,11 +17,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp import candidates as cands
-from jaxmripp import comms, geometry, gp, sensing, world as worldmod
+from jaxmripp.sim import candidates as cands
+from jaxmripp.sim import comms, geometry, gp, sensing, world as worldmod
 from jaxmripp.config import (CandidateConfig, Config, GPConfig, RadioConfig, RewardConfig,
                              RobotConfig, SensorConfig, WorldConfig)
-from jaxmripp.observation import FEATURES, ROBOT_STATE, Observation
+from jaxmripp.sim.observation import FEATURES, ROBOT_STATE, Observation
 
 
 @dataclasses.dataclass(frozen=True)
@@ -186,9 +186,7 @@ def _fly(world, start, end, params: EnvParams):
 
     Returns the stop position, whether the move was blocked and the blocking voxel.
     """
-    count = geometry.segment_samples(params.size, params.candidates.shell[1])
-    points = geometry.segment_points(start, end, count)
-    voxels = geometry.voxel_of(points, params.size)
+    points, voxels = geometry.segment_voxels(start, end, params.size, params.candidates.shell[1])
     hit = worldmod.occupied(world, voxels)
     first = jnp.argmax(hit)
     blocked = jnp.any(hit)

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmripp import geometry
+from jaxmripp.sim import geometry
 from jaxmripp.config import WorldConfig
 
 _RANDOM_LOTS_PER_BUILDING = 2.0  # more lots -> more irregular layouts, less jitter per lot

@@ -8,7 +8,7 @@ same world and budget, so planners are compared on identical problems.
 - `run_shape`: the sweep primitive. World w comes from the key (seed, w) and trial t on it
   from (seed, w, t) (`world_keys`, `trial_keys`, `run_trial`), so worlds x trials of one
   planner on one `Shape` (N, G, rho, B) are compiled once and run in memory-sized chunks;
-  `jaxmripp.sweep` loops it over a config's eval section and writes the outputs.
+  `jaxmripp.evaluation.sweep` loops it over a config's eval section and writes the outputs.
 - `baseline_planner`: non-learning planners by name; `welch_ttest`, `mean_ci`: statistics.
 """
 
@@ -25,16 +25,17 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from jaxmripp import baselines, episode
-from jaxmripp import env as envmod
-from jaxmripp.baselines import Planner
+from jaxmripp.evaluation import baselines
+from jaxmripp.sim import episode
+from jaxmripp.sim import env as envmod
+from jaxmripp.evaluation.baselines import Planner
 from jaxmripp.config import Config
-from jaxmripp.env import EnvParams
+from jaxmripp.sim.env import EnvParams
 
 
 def policy_planner(network, params, width: int, name: str = "policy") -> Planner:
     """The trained policy at deployment: each robot takes its most probable candidate."""
-    from jaxmripp.ppo import apply_batched  # ppo imports the env; keep this module light
+    from jaxmripp.learn.ppo import apply_batched  # ppo imports the env; keep this module light
 
     def init(n_robots):
         return jnp.zeros((n_robots, width), jnp.float32)
@@ -353,7 +354,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "oracle":
         return baselines.oracle_planner(params)
     if name == "mcts":
-        from jaxmripp.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
+        from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
 
         return tree_search_planner(params, simulations=get("mcts_simulations"),
                                    max_depth=get("mcts_depth"),

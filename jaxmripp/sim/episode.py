@@ -6,9 +6,9 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp import env as envmod
-from jaxmripp.baselines import Planner
-from jaxmripp.env import EnvParams
+from jaxmripp.sim import env as envmod
+from jaxmripp.evaluation.baselines import Planner
+from jaxmripp.sim.env import EnvParams
 
 
 @struct.dataclass

@@ -41,7 +41,7 @@ import numpy as np
 from flax import traverse_util
 
 from jaxmripp.config import PolicyConfig
-from jaxmripp.observation import FEATURES, Observation
+from jaxmripp.sim.observation import FEATURES, Observation
 
 # Pointer-network logit clipping (Bello et al. 2017): bounded logits keep the policy
 # from collapsing early and bound the PPO ratio's sensitivity to the pointer weights.

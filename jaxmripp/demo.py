@@ -1,11 +1,10 @@
 """A team flown by the onboard runtime: every decision comes from `OnboardPlanner`.
 
-    python -m jaxmripp.runtime.demo                         # greedy planners, default config
-    python -m jaxmripp.runtime.demo --export runs/x/export  # the exported policy
+    python -m jaxmripp.demo                         # greedy planners, default config
+    python -m jaxmripp.demo --export runs/x/export  # the exported policy
 
-The world and the ground-truth camera come from the JAX side (`jaxmripp.world`,
-`jaxmripp.sensing.cast`); this module is the only one in `jaxmripp.runtime` that imports
-jax. Each round every robot senses, broadcasts its message to the robots within radio range
+The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
+`jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. Each round every robot senses, broadcasts its message to the robots within radio range
 (JSON bytes, as on a real radio), reads theirs and decides; the demo then flies each robot
 along a straight line, stopping before a building (as the env does), and prints the
 progress. It ends when every robot hovers or after the episode's step limit.
@@ -23,16 +22,16 @@ from pathlib import Path
 import numpy as np
 
 from jaxmripp.runtime import weights as fmt
-from jaxmripp.runtime.mapping import segment_points, segment_samples, voxel_of
+from jaxmripp.runtime.mapping import segment_voxels
 from jaxmripp.runtime.planner import OnboardPlanner
+from jaxmripp.spec.grid import HEADING_NAMES
 
-HEADING_NAMES = ("+x", "+y", "-x", "-y")
 
 
 def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell_hi: float):
-    """jaxmripp.env._fly in NumPy: (stop position, blocked)."""
-    points = segment_points(start, end[None], segment_samples(size, shell_hi))[0]
-    voxel = voxel_of(points, size)
+    """jaxmripp.sim.env._fly in NumPy: (stop position, blocked)."""
+    points, voxels = segment_voxels(start, end[None], size, shell_hi)
+    points, voxel = points[0], voxels[0]
     hit = voxel[:, 2] < height[voxel[:, 0], voxel[:, 1]]
     if not hit.any():
         return end, False
@@ -41,7 +40,7 @@ def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell
 
 
 def main(argv: list[str] | None = None) -> float:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.runtime.demo", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=None,
                         help="export directory (python -m jaxmripp.export RUN_DIR); "
@@ -64,7 +63,7 @@ def main(argv: list[str] | None = None) -> float:
 
     from jaxmripp import config as cfgmod
     from jaxmripp import export as exportmod
-    from jaxmripp import sensing, world as worldmod
+    from jaxmripp.sim import sensing, world as worldmod
 
     cfg = cfgmod.load(args.config)
     if args.export is not None:

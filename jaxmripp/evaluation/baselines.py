@@ -14,8 +14,8 @@ from typing import Callable, NamedTuple
 import jax
 import jax.numpy as jnp
 
-from jaxmripp import comms, geometry, gp, sensing
-from jaxmripp.observation import FEATURES, Observation
+from jaxmripp.sim import comms, geometry, gp, sensing
+from jaxmripp.sim.observation import FEATURES, Observation
 
 UTILITY_MEAN = FEATURES.index("utility_mean")
 UTILITY_STD = FEATURES.index("utility_std")

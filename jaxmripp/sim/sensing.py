@@ -39,9 +39,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxmripp import geometry
+from jaxmripp.sim import geometry
 from jaxmripp.config import SensorConfig
-from jaxmripp.world import World
+from jaxmripp.sim.world import World
 
 # Camera frame per heading: forward f, right r = f x up (both horizontal), up = +z.
 _FORWARD = geometry.HEADING_VECTORS[:, :2].astype(np.int32)

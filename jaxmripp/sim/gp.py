@@ -52,7 +52,7 @@ import numpy as np
 from flax import struct
 
 from jaxmripp.config import GPConfig
-from jaxmripp.geometry import HEADING_ANGLES
+from jaxmripp.sim.geometry import HEADING_ANGLES
 
 
 @struct.dataclass

@@ -38,8 +38,8 @@ import jax.numpy as jnp
 import mctx
 from flax import struct
 
-from jaxmripp import comms, geometry, gp
-from jaxmripp.baselines import Planner, _no_memory, masked_argmax
+from jaxmripp.sim import comms, geometry, gp
+from jaxmripp.evaluation.baselines import Planner, _no_memory, masked_argmax
 
 _NEG = -1e9  # prior logit of infeasible actions
 
@@ -91,14 +91,6 @@ def _scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty
     return mean * (1.0 - corr) + kappa * jnp.sqrt(var_s)
 
 
-def _clear(start, ends, occupancy, size: int, max_length: float):
-    """(3,), (K, 3) -> (K,) no sample of the segment lies in a voxel mapped OCCUPIED."""
-    count = geometry.segment_samples(size, max_length)
-    points = jax.vmap(geometry.segment_points, in_axes=(None, 0, None))(start, ends, count)
-    v = geometry.voxel_of(points, size)
-    return jnp.all(occupancy[v[..., 0], v[..., 1], v[..., 2]] != geometry.OCCUPIED, axis=-1)
-
-
 def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
                         considered: int = 4, kappa: float = 0.3, discount: float = 0.9,
                         temperature: float = 0.1, gumbel_scale: float = 0.0,
@@ -117,7 +109,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         cost = distance + turn_cost * turned
         valid = (ctx.slot_kept & geometry.inside_world(position) & (cost <= node.budget)
                  & ((distance > 0) | turned)
-                 & _clear(node.position, position, ctx.occupancy, size, reach))
+                 & geometry.mapped_clear(node.position, position, ctx.occupancy, size, reach))
         return geometry.pose(position, ctx.heading), valid
 
     def expand(ctx: Context, action, node: Node):

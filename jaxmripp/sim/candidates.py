@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp import geometry
+from jaxmripp.sim import geometry
 from jaxmripp.config import CandidateConfig, RobotConfig
 
 
@@ -94,7 +94,7 @@ def sample(
 
     place_ok = (
         geometry.inside_world(drawn)
-        & _line_of_flight_clear(position, drawn, occupancy, size, max_length=hi)
+        & geometry.mapped_clear(position, drawn, occupancy, size, max_length=hi)
         & _clear_of_robots(drawn, others, others_known, collision_distance)
     )
 
@@ -127,22 +127,6 @@ def sample(
         cost=slot_cost.reshape(cand.count),
         valid=slot_valid.reshape(cand.count),
     )
-
-
-def _line_of_flight_clear(
-    start: jax.Array, ends: jax.Array, occupancy: jax.Array, size: int, max_length: float
-) -> jax.Array:
-    """(3,), (M, 3) -> (M,) True where no sample of the segment is mapped as OCCUPIED.
-
-    Segments are stepped at half-voxel spacing (for the longest one; shorter ones more
-    densely), so a wall at least one voxel thick cannot be jumped over; a segment may still
-    clip the corner of an isolated voxel. Unknown voxels count as free: the robot plans
-    optimistically and the env checks the flight against the ground truth.
-    """
-    count = geometry.segment_samples(size, max_length)
-    points = jax.vmap(geometry.segment_points, in_axes=(None, 0, None))(start, ends, count)
-    cells = geometry.linear_index(geometry.voxel_of(points, size), size)
-    return jnp.all(occupancy.reshape(-1)[cells] != geometry.OCCUPIED, axis=-1)
 
 
 def _clear_of_robots(

@@ -23,7 +23,7 @@ import jax
 # robot; x, y, z absolute position; one-hot heading; posterior mean and standard deviation
 # of the utility and communication GPs; path cost; budget left after the move.
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
-from jaxmripp.runtime.layout import FEATURES, ROBOT_STATE  # noqa: E402
+from jaxmripp.spec.layout import FEATURES, ROBOT_STATE  # noqa: E402
 
 N_FEATURES = len(FEATURES)  # F = 16
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9

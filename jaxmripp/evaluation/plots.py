@@ -14,7 +14,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from matplotlib import animation  # noqa: E402
 
-from jaxmripp import viz  # noqa: E402
+from jaxmripp.evaluation import viz  # noqa: E402
 
 
 def discovery_vs_budget(path, runs: dict, title: str = "", points: int = 41) -> Path:

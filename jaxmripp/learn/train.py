@@ -21,12 +21,12 @@ import numpy as np
 from flax import struct
 
 from jaxmripp import config as cfgmod
-from jaxmripp import env as envmod
-from jaxmripp import ppo
-from jaxmripp.checkpoint import Checkpoints
+from jaxmripp.sim import env as envmod
+from jaxmripp.learn import ppo
+from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
-from jaxmripp.env import EnvParams
-from jaxmripp.policy import initial_memory
+from jaxmripp.sim.env import EnvParams
+from jaxmripp.learn.policy import initial_memory
 
 
 @struct.dataclass

@@ -16,11 +16,11 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp import env as envmod
+from jaxmripp.sim import env as envmod
 from jaxmripp.config import Config, PPOConfig
-from jaxmripp.env import EnvParams
-from jaxmripp.observation import Observation
-from jaxmripp.policy import ActorCritic, distribution, initial_memory
+from jaxmripp.sim.env import EnvParams
+from jaxmripp.sim.observation import Observation
+from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
 
 
 @struct.dataclass

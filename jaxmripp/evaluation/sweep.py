@@ -34,10 +34,10 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from jaxmripp import evaluate
-from jaxmripp.baselines import Planner
+from jaxmripp.evaluation import evaluate
+from jaxmripp.evaluation.baselines import Planner
 from jaxmripp.config import Config
-from jaxmripp.evaluate import Shape, ShapeRun, eval_setting
+from jaxmripp.evaluation.evaluate import Shape, ShapeRun, eval_setting
 
 # Table I of the paper (design.md section 1): N = 3, B = 10, G = 50, 25 worlds x 10 trials.
 PUBLISHED = [
@@ -245,7 +245,7 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
 def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None = None,
                   render: bool = True, gif: bool = True, command: str = "") -> dict[str, Path]:
     """results.md, runs.csv, runs.json, summary.json and plots in out_dir; returns paths."""
-    from jaxmripp import eval_plots  # noqa: PLC0415 (matplotlib only when writing)
+    from jaxmripp.evaluation import plots as eval_plots  # noqa: PLC0415 (matplotlib only when writing)
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
