@@ -52,7 +52,7 @@ def main(argv=None) -> int:
         return 2
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
-    from jaxmripp.evaluation import sweep  # noqa: PLC0415 (after argument errors)
+    from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415 (after argument errors)
 
     planners = {}
     for name, run_dir in policies:
@@ -68,7 +68,7 @@ def main(argv=None) -> int:
     result = sweep.run_sweep(cfg, planners, time_planning=False if args.no_timing else None,
                              keep_pictures=render)
     command = "python eval.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
-    paths = sweep.write_outputs(result, out, cfg, render=render, gif=not args.no_gif,
+    paths = outputs.write_outputs(result, out, cfg, render=render, gif=not args.no_gif,
                                 command=command)
     print(result.table())
     print(f"results: {out}/ ({', '.join(sorted(p.name for p in paths.values()))})")

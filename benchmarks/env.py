@@ -9,8 +9,8 @@ load, so the CPU time per step and `env.agent_steps_per_cpu_s` are printed too).
 
 The same run times the step's parts separately on the same batch, each jitted and
 vmapped alone (they are not donated, so each also pays for copying its outputs):
-sensing (ray casts + occupancy-map updates), GP updates (`env._feed_gps`: own pose, peers'
-poses, the trace bookkeeping for r_e / r_c), GP predictions (`env.observe`'s posterior mean
+sensing (ray casts + occupancy-map updates), GP updates (`feeding.feed_gps`: own pose,
+peers' poses, the trace bookkeeping for r_e / r_c), GP predictions (`observe`'s posterior mean
 and variance at every candidate, both GPs) and candidates (`candidates.sample`). Shares are
 part time / step time; they need not sum to 1 (the rest is motion, radio, rewards and
 copies, and XLA fuses differently when a part is compiled alone).
@@ -34,15 +34,17 @@ import jax.numpy as jnp  # noqa: E402
 from common import batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp.evaluation import baselines  # noqa: E402
 from jaxmripp import config  # noqa: E402
-from jaxmripp.sim import gp, sensing  # noqa: E402
+from jaxmripp.sim import comms, feeding, geometry, gp, sensing  # noqa: E402
 from jaxmripp.sim import candidates as cands  # noqa: E402
 from jaxmripp.sim import env as envmod  # noqa: E402
+from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
 def build(args):
+    """Static and dynamic env parameters of the benchmarked setting."""
     overrides = [f"world.size={args.size}", f"robots.count={args.robots}", *args.set]
     cfg = config.load(None, overrides)
-    return envmod.EnvParams.from_config(cfg)
+    return EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
 
 
 def main() -> None:
@@ -50,32 +52,32 @@ def main() -> None:
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
     parser.add_argument("--no-parts", action="store_true", help="skip the per-part timings")
     args = parser.parse_args()
-    params = build(args)
+    params, dyn = build(args)
     envs, n = args.envs, params.n_robots
     common = dict(envs=envs, robots=n, size=params.size, candidates=params.n_candidates,
                   gp_capacity=params.gp.capacity, backend=jax.default_backend())
 
     keys = jax.random.split(jax.random.PRNGKey(0), envs)
     start = time.perf_counter()
-    reset = jax.jit(jax.vmap(lambda k: envmod.reset(k, params)))
-    obs, state = jax.block_until_ready(reset(keys))
+    reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)))
+    obs, state = jax.block_until_ready(reset(keys, dyn))
     emit("env.reset_compile_and_run_s", time.perf_counter() - start, "s", **common)
 
     planner = baselines.random_planner()
 
-    def team_step(key, obs, state):
+    def team_step(key, obs, state, dyn):
         key_act, key_step = jax.random.split(key)
-        _, actions = planner.act(key_act, None, obs, state)
-        obs, state, reward, done, info = envmod.step(key_step, state, actions, params)
+        _, actions = planner.act(key_act, None, obs, state, dyn)
+        obs, state, reward, done, info = envmod.step(key_step, state, actions, params, dyn)
         return obs, state, reward
 
-    step = jax.jit(jax.vmap(team_step), donate_argnums=(1, 2))
+    step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)), donate_argnums=(1, 2))
     holder = {"obs": obs, "state": state, "key": jax.random.PRNGKey(1)}
 
     def run():
         holder["key"], key = jax.random.split(holder["key"])
         holder["obs"], holder["state"], reward = step(jax.random.split(key, envs),
-                                                      holder["obs"], holder["state"])
+                                                      holder["obs"], holder["state"], dyn)
         return reward
 
     start = time.perf_counter()
@@ -109,29 +111,30 @@ def main() -> None:
         return s.replace(occupancy=occupancy), casts.seen
 
     def gp_update_part(s):
-        s, r_e, r_c = envmod._feed_gps(s, p)
+        s, r_e, r_c = feeding.feed_gps(s, p)
         return s, r_e + r_c
 
     def gp_predict_part(s):
-        poses = envmod.geometry.pose(s.candidates.position, s.candidates.heading)
+        poses = geometry.pose(s.candidates.position, s.candidates.heading)
         ugp = s.utility_gp if not p.gp.shared_utility else jax.tree.map(
             lambda x: jnp.broadcast_to(x, (n, *x.shape[1:])), s.utility_gp)
         predict = jax.vmap(gp.predict, in_axes=(0, 0, None))
         return predict(ugp, poses, p.gp), predict(s.comm_gp, poses, p.gp)
 
-    def candidates_part(s, key):
+    def candidates_part(s, key, d):
         k = jax.random.split(key, n)
-        contact = envmod.comms.contacts(s.position, p.radio.range)
+        contact = comms.contacts(s.position, d.radio_range)
         return jax.vmap(cands.sample,
-                           in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
+                        in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
             k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
-            p.candidates, p.robots, p.radio.collision_distance, p.size)
+            p.candidates, d.turn_cost, d.collision_distance, p.size)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),
         "gp_update": (jax.jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
         "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), False, ()),
-        "candidates": (jax.jit(jax.vmap(candidates_part)), False, (keys,)),
+        "candidates": (jax.jit(jax.vmap(candidates_part, in_axes=(0, 0, None))), False,
+                       (keys, dyn)),
     }
     part_seconds = {}
     for name, (fn, donated, extra) in parts.items():

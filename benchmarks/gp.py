@@ -83,7 +83,7 @@ def _refactor_one(buffer, pose, value, queries, eval_poses, cfg):
     rhs = jnp.concatenate([gp.feature_kernel(features, points, cfg), targets[:, None]], axis=1)
     solved = solve_triangular(chol, jnp.where(valid[:, None], rhs, 0.0), lower=True)
     at_queries, at_eval = solved[:, : len(queries)], solved[:, len(queries) : -1]
-    mean = jnp.sum(at_queries * solved[:, -1:], axis=0)  # no batched matvec: see gp._matvec
+    mean = jnp.sum(at_queries * solved[:, -1:], axis=0)  # no batched matvec: see gp.linalg.matvec
     variance = jnp.clip(cfg.variance - jnp.sum(at_queries**2, axis=0), 0.0, cfg.variance)
     trace = len(eval_poses) * cfg.variance - jnp.sum(at_eval**2)
     return (features, targets, valid, count + 1), (mean, variance, trace)

@@ -4,10 +4,11 @@
     python -m jaxmripp.demo --export runs/x/export  # the exported policy
 
 The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
-`jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. Each round every robot senses, broadcasts its message to the robots within radio range
-(JSON bytes, as on a real radio), reads theirs and decides; the demo then flies each robot
-along a straight line, stopping before a building (as the env does), and prints the
-progress. It ends when every robot hovers or after the episode's step limit.
+`jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. Each round every
+robot senses, broadcasts its message to the robots within radio range (JSON bytes, as on
+a real radio), reads theirs and decides; the demo then flies each robot along a straight
+line, stopping before a building (as the env does), and prints the progress. It ends when
+every robot hovers or after the episode's step limit.
 """
 
 from __future__ import annotations
@@ -25,7 +26,6 @@ from jaxmripp.runtime import weights as fmt
 from jaxmripp.runtime.mapping import segment_voxels
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.spec.grid import HEADING_NAMES
-
 
 
 def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell_hi: float):

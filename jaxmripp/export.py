@@ -17,26 +17,53 @@ from typing import Any
 
 from jaxmripp.learn import policy as policymod
 from jaxmripp.config import Config
-from jaxmripp.sim.observation import FEATURES, ROBOT_STATE
 from jaxmripp.runtime import weights as fmt
+from jaxmripp.spec.layout import FEATURES, N_GLOBAL_EXTRA, ROBOT_STATE
+
+
+class ExportError(ValueError):
+    """The policy does not fit the layout the runtime will feed it; nothing was written."""
 
 
 def header(cfg: Config, source: dict | None = None) -> dict[str, Any]:
-    """The policy.json header of `cfg` (without the weights block, which `export` adds).
-
-    The layout comes from jaxmripp.sim.observation; `fmt.header` writes the runtime's copy, so
-    a drift between the two fails here, at export time, instead of onboard.
-    """
-    if (tuple(FEATURES), tuple(ROBOT_STATE)) != (fmt.FEATURES, fmt.ROBOT_STATE):
-        raise RuntimeError("jaxmripp.sim.observation's layout differs from jaxmripp.runtime's")
+    """The policy.json header of `cfg` (without the weights block, which `export` adds)."""
     central_critic = cfg.ppo.algo == "mappo"
     return fmt.header(cfg, policymod.runtime_config(cfg.policy, central_critic), source)
 
 
+def check_layout(head: dict[str, Any], weights: dict[str, Any]) -> None:
+    """Refuses an export the runtime would feed wrongly: the header's layout must be the
+    spec's (`jaxmripp.spec.layout`, which the runtime builds), and the weights' input
+    widths must be the layout's (embed: one row per feature, state_embed: per robot-state
+    column, global_embed: N robot states plus the team values). Checked here, at export
+    time, so that a drift fails on the workstation rather than onboard."""
+    layout = head.get("layout") or {}
+    for key, spec in (("features", FEATURES), ("robot_state", ROBOT_STATE)):
+        if list(layout.get(key) or ()) != list(spec):
+            raise ExportError(f"header layout.{key} {layout.get(key)!r} differs from "
+                              f"jaxmripp.spec.layout's {list(spec)!r}")
+    n_features, n_state = len(layout["features"]), len(layout["robot_state"])
+    inputs = {"embed": n_features, "state_embed": n_state}
+    if head.get("policy", {}).get("central_critic"):
+        inputs["global_embed"] = head["config"]["robots"]["count"] * n_state + N_GLOBAL_EXTRA
+    for name, width in inputs.items():
+        kernel = weights.get(f"{name}/kernel")
+        if kernel is None:
+            raise ExportError(f"the policy has no layer {name}; the header's layout needs "
+                              f"one reading {width} inputs")
+        if kernel.shape[0] != width:
+            raise ExportError(f"policy layer {name} reads {kernel.shape[0]} inputs; the "
+                              f"header's layout gives {width}")
+
+
 def export(cfg: Config, params, out_dir: str | Path, source: dict | None = None
            ) -> tuple[Path, Path]:
-    """Writes out_dir/policy.npz and out_dir/policy.json for Flax `params`."""
-    return fmt.save(out_dir, policymod.flatten_params(params), header(cfg, source))
+    """Writes out_dir/policy.npz and out_dir/policy.json for Flax `params` (after
+    `check_layout`; raises ExportError and writes nothing on a mismatch)."""
+    weights = policymod.flatten_params(params)
+    head = header(cfg, source)
+    check_layout(head, weights)
+    return fmt.save(out_dir, weights, head)
 
 
 def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | None = None
@@ -72,9 +99,12 @@ def main(argv: list[str] | None = None) -> int:
     from jaxmripp.learn.checkpoint import CheckpointError
     from jaxmripp.config import ConfigError
 
+    if not args.run_dir.is_dir():  # before importing the trainer: a typo fails at once
+        print(f"error: {args.run_dir}: no such run directory", file=sys.stderr)
+        return 1
     try:
         npz, header_path = export_run(args.run_dir, args.best, args.out)
-    except (ConfigError, CheckpointError) as err:
+    except (ConfigError, CheckpointError, ExportError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
     print(f"wrote {npz} and {header_path}")

@@ -10,6 +10,7 @@ import jax
 import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
+from jaxmripp.evaluation.planners import policy_planner
 from jaxmripp.sim import episode
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints
@@ -22,7 +23,7 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
     state = checkpoints.restore(trainer.init(), best=best)
     checkpoints.close()
-    return evaluate.policy_planner(trainer.network, state.params, cfg.policy.width)
+    return policy_planner(trainer.network, state.params, cfg.policy.width)
 
 
 def baseline_planners(cfg: Config) -> list[baselines.Planner]:
@@ -30,18 +31,21 @@ def baseline_planners(cfg: Config) -> list[baselines.Planner]:
             baselines.random_planner()]
 
 
-def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print) -> dict:
-    """Learning curve, held-out comparison table and an episode picture in run_dir."""
+def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,
+           compiler_options: dict | None = None) -> dict:
+    """Learning curve, held-out comparison table and an episode picture in run_dir;
+    returns the mean % of windows found per planner. `compiler_options` go to XLA."""
     records = trainmod.read_metrics(run_dir)
     if records:
         viz.learning_curve(run_dir / "learning_curve.png", records,
                            keys=("discovered", "return", "entropy"))
     planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg)
     params = evaluate.eval_params(cfg, cfg.train.eval_budget, layout="random")
+    dyn = evaluate.eval_dynamic(cfg, cfg.train.eval_budget)
     keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
-    results = evaluate.compare(planners, params, keys)
+    results = evaluate.compare(planners, params, dyn, keys, compiler_options)
     title = (f"{cfg.train.eval_worlds} held-out random-layout worlds, N = {params.n_robots}, "
-             f"B = {cfg.train.eval_budget}, rho = {params.radio.range}")
+             f"B = {cfg.train.eval_budget}, rho = {cfg.radio.range}")
     table = evaluate.summary_table(results, title)
     (run_dir / "eval_table.md").write_text(table + "\n")
     (run_dir / "eval_summary.json").write_text(json.dumps(
@@ -49,8 +53,9 @@ def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print) -> di
                 "ms_per_robot_step": r["ms_per_robot_step"]} for name, r in results.items()},
         indent=2))
     viz.discovery_curves(run_dir / "discovered_vs_budget.png", results)
-    shown = jax.jit(lambda k: episode.run(k, params, planners[0]))(keys[0])
-    viz.render_result(run_dir / "episode_policy.png", shown, params.radio.range,
+    shown = jax.jit(lambda k, d: episode.run(k, params, d, planners[0]),
+                    compiler_options=compiler_options)(keys[0], dyn)
+    viz.render_result(run_dir / "episode_policy.png", shown, cfg.radio.range,
                       title=f"trained policy: {100 * float(shown.discovered_fraction):.1f}% found")
     log(table)
     return {name: float(np.mean(r["discovered"])) for name, r in results.items()}

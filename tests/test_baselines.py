@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp.evaluation import baselines, evaluate
+from jaxmripp.evaluation import baselines, cells, evaluate, planners
 from jaxmripp import config
 from jaxmripp.sim import geometry, world
 from jaxmripp.config import WorldConfig
@@ -29,17 +29,22 @@ def _observation(utility_mean, mask):
                        global_state=jnp.zeros((n, 9 * n + 2)))
 
 
-def _act(planner, obs, state):
+def _act(planner, obs, state, dyn=None):
     """planner.act jitted with the hand-made state (not a pytree) closed over."""
-    act = jax.jit(lambda key, obs: planner.act(key, planner.init(2), obs, state)[1])
-    return act(jax.random.PRNGKey(0), obs)
+    act = jax.jit(lambda key, obs, dyn: planner.act(key, planner.init(2), obs, state, dyn)[1])
+    return act(jax.random.PRNGKey(0), obs, dyn)
 
 
-def _params(radio_range=np.inf, collision_distance=0.05):
-    cfg = config.load(ROOT / "configs" / "smoke.yaml")
-    params = evaluate.eval_params(cfg, 2.0, radio_range=radio_range)
-    radio = params.radio.__class__(range=radio_range, collision_distance=collision_distance)
-    return params.__class__(**{**params.__dict__, "radio": radio})
+SMOKE = config.load(ROOT / "configs" / "smoke.yaml")
+
+
+def _params():
+    return evaluate.eval_params(SMOKE, 2.0)
+
+
+def _dyn(radio_range=np.inf, collision_distance=0.05):
+    return evaluate.eval_dynamic(SMOKE, 2.0, radio_range=radio_range).with_values(
+        collision_distance=collision_distance)
 
 
 def _candidates(positions):
@@ -58,9 +63,9 @@ def test_coordinated_skips_what_a_heard_peer_chose(radio_range, expect_second):
     state = types.SimpleNamespace(candidates=_candidates(positions),
                                   position=jnp.full((2, 3), 0.5, jnp.float32))
     obs = _observation(utility, jnp.ones((2, 3), bool))
-    planner = baselines.coordinated_planner(_params(radio_range), kappa=0.0, lam=0.0, mu=1.0,
+    planner = baselines.coordinated_planner(_params(), kappa=0.0, lam=0.0, mu=1.0,
                                               novelty=False)
-    assert _act(planner, obs, state).tolist() == [0, expect_second]  # out of radio range: no coordination
+    assert _act(planner, obs, state, _dyn(radio_range)).tolist() == [0, expect_second]  # out of radio range: no coordination
 
 
 def test_coordinated_falls_back_when_everything_is_crowded():
@@ -71,7 +76,7 @@ def test_coordinated_falls_back_when_everything_is_crowded():
     obs = _observation([[1.0, 0.9, 0.5]] * 2, mask)
     planner = baselines.coordinated_planner(_params(), kappa=0.0, lam=0.0, mu=0.0,
                                               novelty=False)
-    assert _act(planner, obs, state).tolist() == [0, 0]  # the only feasible poses are crowded: still act
+    assert _act(planner, obs, state, _dyn()).tolist() == [0, 0]  # the only feasible poses are crowded: still act
 
 
 def test_oracle_robots_do_not_claim_the_same_windows():
@@ -120,15 +125,15 @@ WORLDS = 192  # compiling dominates; many worlds make the paired comparison tigh
 @pytest.fixture(scope="module")
 def ranking():
     cfg = config.load(ROOT / "configs" / "smoke.yaml", SMALL)
-    shape = evaluate.Shape(n_robots=2, size=30, radio_range=float("inf"), budget=6.0)
-    params = evaluate.eval_params(cfg, shape.budget, robots=2, size=30,
-                                  radio_range=shape.radio_range)
+    shape = cells.Shape(n_robots=2, size=30, radio_range=float("inf"), budget=6.0)
+    params = evaluate.eval_params(cfg, shape.budget, robots=2, size=30)
+    dyn = evaluate.eval_dynamic(cfg, shape.budget, radio_range=shape.radio_range)
     out = {}
     for name in ("random", "greedy", "mcts", "oracle"):
-        planner = evaluate.baseline_planner(name, params, cfg.eval)
-        out[name] = evaluate.run_shape(planner, params, shape, seed=11, worlds=WORLDS,
-                                       trials=1, keep_pictures=False,
-                                       compiler_options=FAST).discovered
+        planner = planners.baseline_planner(name, params, cfg.eval)
+        out[name] = cells.run_shapes(planner, params, [shape], [dyn], seed=11, worlds=WORLDS,
+                                     trials=1, keep_pictures=False,
+                                     compiler_options=FAST)[0].discovered
     return out
 
 

@@ -15,14 +15,14 @@ from jaxmripp.config import CandidateConfig, RobotConfig
 
 G = 50
 CAND = CandidateConfig()  # K = 20 positions, shell [0.19, 0.21], oversample 3
-ROBOTS = RobotConfig()  # turn cost 0.05
+TURN = RobotConfig().turn_cost  # 0.05
 DC = 0.05
 K, L = CAND.positions, CAND.count
 HERE = np.array([0.5, 0.5, 0.5], np.float32)
 H0 = 1  # current heading
 
 sample = jax.jit(
-    functools.partial(candidates.sample, cand=CAND, robots=ROBOTS, collision_distance=DC, size=G)
+    functools.partial(candidates.sample, cand=CAND, turn_cost=TURN, collision_distance=DC, size=G)
 )
 
 
@@ -73,7 +73,7 @@ def test_slot_zero_is_current_position_turning_in_place():
     np.testing.assert_array_equal(c.position[:4], np.tile(HERE, (4, 1)))
     # Turning is allowed, staying put with the same heading is not.
     np.testing.assert_array_equal(c.valid[:4], np.arange(4) != H0)
-    np.testing.assert_allclose(c.cost[:4], ROBOTS.turn_cost * (np.arange(4) != H0))
+    np.testing.assert_allclose(c.cost[:4], TURN * (np.arange(4) != H0))
 
 
 @pytest.mark.parametrize("position", [HERE, np.zeros(3, np.float32), np.array([1, 0.5, 0.02])])
@@ -161,7 +161,7 @@ def test_known_robots_are_kept_at_distance_unknown_ones_ignored():
     others = jnp.asarray(np.stack([HERE, near, far_side]))
     dc = 0.1
     sample_dc = jax.jit(functools.partial(
-        candidates.sample, cand=CAND, robots=ROBOTS, collision_distance=dc, size=G))
+        candidates.sample, cand=CAND, turn_cost=TURN, collision_distance=dc, size=G))
 
     def run(seed, known):
         return as_np(sample_dc(
@@ -189,7 +189,7 @@ def test_cost_is_distance_plus_turn_cost():
     for seed in range(3):
         c = as_np(draw(seed))
         dist = np.linalg.norm(c.position - HERE, axis=-1)
-        expected = dist + ROBOTS.turn_cost * (c.heading != H0)
+        expected = dist + TURN * (c.heading != H0)
         np.testing.assert_allclose(c.cost, expected, rtol=1e-5, atol=1e-6)
 
 
@@ -250,13 +250,17 @@ def test_vmap_over_envs_and_robots_matches_single_calls():
 
 
 def test_traced_once():
+    """Turn cost and d_c are traced too (DynamicParams): new values do not retrace."""
     @jax.jit
     @chex.assert_max_traces(n=1)
-    def traced(key, position, heading, budget, occupancy, others, known):
+    def traced(key, position, heading, budget, occupancy, others, known, turn_cost, dc):
         return candidates.sample(key, position, heading, budget, occupancy, others, known,
-                                 CAND, ROBOTS, DC, G)
+                                 CAND, turn_cost, dc, G)
 
     others, known = alone()
-    for seed, budget, heading in [(0, 10.0, 1), (1, 0.3, 2), (2, 0.0, 0)]:
-        traced(jax.random.key(seed), jnp.asarray(HERE), jnp.int32(heading), jnp.float32(budget),
-               free_map(), others, known)
+    for seed, budget, heading, turn, dc in [(0, 10.0, 1, TURN, DC), (1, 0.3, 2, 0.1, 0.02),
+                                            (2, 0.0, 0, 0.0, 0.0)]:
+        c = traced(jax.random.key(seed), jnp.asarray(HERE), jnp.int32(heading),
+                   jnp.float32(budget), free_map(), others, known, jnp.float32(turn),
+                   jnp.float32(dc))
+        np.testing.assert_allclose(c.cost[:4], turn * (np.arange(4) != heading), atol=1e-7)

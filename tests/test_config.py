@@ -1,5 +1,6 @@
 import dataclasses
 import math
+from pathlib import Path
 
 import pytest
 import yaml
@@ -7,12 +8,18 @@ import yaml
 from jaxmripp import config as cfgmod
 from jaxmripp.config import Config, ConfigError
 
-PRESETS = ["default", "paper", "smoke"]
+CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+PRESETS = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
+
+
+def test_every_preset_is_checked():
+    assert {"default", "paper", "smoke", "eval_paper", "train_paper"} <= set(PRESETS)
 
 
 @pytest.mark.parametrize("name", PRESETS)
 def test_presets_load_and_round_trip(name):
-    cfg = cfgmod.load(f"configs/{name}.yaml")
+    # Every preset must load and validate: an unknown key or a bad value fails here.
+    cfg = cfgmod.load(CONFIGS / f"{name}.yaml")
     again = cfgmod.from_dict(yaml.safe_load(cfgmod.to_yaml(cfg)))
     assert again == cfg
     hash(cfg)  # usable as a static jit argument
@@ -66,6 +73,16 @@ def test_near_miss_key_suggests_the_right_name():
         cfgmod.load(None, ["world.sise=50"])
     with pytest.raises(ConfigError, match="did you mean 'radio'"):
         cfgmod.from_dict({"radoi": {"range": 1.0}})
+
+
+def test_preset_with_an_unknown_key_is_refused_in_one_line(tmp_path):
+    preset = tmp_path / "typo.yaml"
+    preset.write_text(f"base: {CONFIGS / 'default.yaml'}\neval:\n  wordls: 3\n")
+    with pytest.raises(ConfigError) as err:
+        cfgmod.load(preset)
+    message = str(err.value)
+    assert message.startswith("typo.yaml: eval.wordls: unknown key; did you mean 'eval.worlds'?")
+    assert "\n" not in message
 
 
 def test_malformed_override_and_missing_file():

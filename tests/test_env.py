@@ -23,21 +23,26 @@ import pytest
 
 from jaxmripp.evaluation import baselines
 from jaxmripp import config
-from jaxmripp.sim import episode, geometry, gp, sensing
+from jaxmripp.sim import episode, feeding, geometry, gp, sensing
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim import env as envmod
-from jaxmripp.evaluation.baselines import Planner
+from jaxmripp.sim.params import DynamicParams, EnvParams, StaticRadio
+from jaxmripp.sim.episode import Planner
+from jaxmripp.sim.observation import Observation
+from jaxmripp.spec import FEATURES
 
 REPO = Path(__file__).resolve().parents[1]
 CFG = config.load(REPO / "configs/smoke.yaml",
                   ["world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]"])
-P0 = envmod.EnvParams.from_config(CFG)  # rho = 0.3, single hop, d_c = 0.05
+P0 = EnvParams.from_config(CFG)  # single hop
+D0 = DynamicParams.from_config(CFG)  # rho = 0.3, d_c = 0.05
 N, T_MAX = P0.n_robots, P0.max_steps
-# dataclasses.replace skips config validation (which rejects d_c >= rho, e.g. rho = 0).
-P_INF = dataclasses.replace(P0, radio=dataclasses.replace(P0.radio, range=math.inf))
-P_ZERO = dataclasses.replace(
-    P0, radio=dataclasses.replace(P0.radio, range=0.0, collision_distance=0.0))
-P_RELAY = dataclasses.replace(P0, radio=dataclasses.replace(P0.radio, relay=True))
+# Values the config would reject (it wants d_c < rho), set on the dynamic side: they share
+# P0's compiled functions.
+D_INF = D0.with_values(radio_range=math.inf)
+D_ZERO = D0.with_values(radio_range=0.0, collision_distance=0.0)
+P_RELAY = dataclasses.replace(P0, radio=StaticRadio(relay=True))
+TURN = CFG.robots.turn_cost
 WORLDS = 20
 FAST = {"xla_backend_optimization_level": 0}
 
@@ -47,17 +52,26 @@ def jit(fn, **kwargs):
 
 
 def env_fns(params, with_reset=True, count_traces=False):
-    """Jitted reset / step for one environment; with count_traces, each may be traced only
-    once (chex identifies a function by its source and call stack, so only one set of
-    functions per module can be counted)."""
-    step = lambda key, state, actions: envmod.step(key, state, actions, params)  # noqa: E731
-    reset = lambda key: envmod.reset(key, params)  # noqa: E731
+    """Jitted reset / step for one environment, DynamicParams traced (the last argument);
+    with count_traces, each may be traced only once (chex identifies a function by its
+    source and call stack, so only one set of functions per module can be counted)."""
+    step = lambda key, state, actions, dyn: envmod.step(  # noqa: E731
+        key, state, actions, params, dyn)
+    reset = lambda key, dyn: envmod.reset(key, params, dyn)  # noqa: E731
     if count_traces:
         step, reset = chex.assert_max_traces(step, n=1), chex.assert_max_traces(reset, n=1)
     fns = SimpleNamespace(step=jit(step))
     if with_reset:
         fns.reset = jit(reset)
     return fns
+
+
+def bind(fns, dyn):
+    """fns with the DynamicParams filled in: step(key, state, actions), reset(key)."""
+    out = SimpleNamespace(step=lambda key, state, actions: fns.step(key, state, actions, dyn))
+    if hasattr(fns, "reset"):
+        out.reset = lambda key: fns.reset(key, dyn)
+    return out
 
 
 def to_np(tree):
@@ -74,10 +88,11 @@ def index(tree, i):
 
 @pytest.fixture(scope="module")
 def fns():
-    return SimpleNamespace(p0=env_fns(P0, count_traces=True),
-                           inf=env_fns(P_INF, with_reset=False),
-                           relay=env_fns(P_RELAY, with_reset=False),
-                           zero=env_fns(P_ZERO),
+    """p0, inf and zero share one compiled reset / step (only dynamic values differ)."""
+    traced = env_fns(P0, count_traces=True)
+    return SimpleNamespace(traced=traced, p0=bind(traced, D0), inf=bind(traced, D_INF),
+                           zero=bind(traced, D_ZERO),
+                           relay=bind(env_fns(P_RELAY, with_reset=False), D0),
                            act=jit(baselines.random_planner().act))
 
 
@@ -86,9 +101,9 @@ def switch_planner(use_greedy):
     rand = baselines.random_planner()
     greedy = baselines.greedy_planner(CFG.eval.greedy_kappa, CFG.eval.greedy_lambda)
 
-    def act(key, memory, obs, state):
-        _, a_rand = rand.act(key, memory, obs, state)
-        _, a_greedy = greedy.act(key, memory, obs, state)
+    def act(key, memory, obs, state, dyn=None):
+        _, a_rand = rand.act(key, memory, obs, state, dyn)
+        _, a_greedy = greedy.act(key, memory, obs, state, dyn)
         return memory, jnp.where(use_greedy, a_greedy, a_rand)
 
     return Planner("switch", rand.init, act)
@@ -101,8 +116,9 @@ def episodes():
     keys = jax.random.split(jax.random.key(2024), WORLDS)
     keys = jnp.concatenate([keys, keys, keys[:1]])
     greedy = jnp.arange(2 * WORLDS + 1) // WORLDS == 1
-    run = jit(jax.vmap(lambda key, g: episode.run(key, P0, switch_planner(g))))
-    return SimpleNamespace(keys=keys, greedy=greedy, result=to_np(run(keys, greedy)))
+    run = jit(jax.vmap(lambda key, g, d: episode.run(key, P0, d, switch_planner(g)),
+                       in_axes=(0, 0, None)))
+    return SimpleNamespace(keys=keys, greedy=greedy, result=to_np(run(keys, greedy, D0)))
 
 
 @pytest.fixture(scope="module")
@@ -201,12 +217,16 @@ def test_single_env_jit_matches_vmapped_episode(rollout, episodes):
 
 def test_reset_and_step_are_traced_once(fns, rollout):
     # The rollout called step T_MAX times; a second trace would have raised. Calling
-    # again with fresh values and another key must not retrace or recompile either.
+    # again with fresh values, another key and other dynamic parameters (radio range,
+    # d_c, budget, reward weights) must not retrace or recompile either.
     obs, state, actions, *_ = rollout[3]
-    fns.p0.step(jax.random.key(99), state, actions)
-    fns.p0.reset(jax.random.key(99))
-    assert fns.p0.step._cache_size() == 1
-    assert fns.p0.reset._cache_size() == 1
+    other = D0.with_values(radio_range=0.1, collision_distance=0.01, budget=(1.0, 3.0),
+                           turn_cost=0.2, alpha=3.0, utility_norm=7.0)
+    for dyn in (D0, D_INF, other):
+        fns.traced.step(jax.random.key(99), state, actions, dyn)
+        fns.traced.reset(jax.random.key(99), dyn)
+    assert fns.traced.step._cache_size() == 1
+    assert fns.traced.reset._cache_size() == 1
 
 
 def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
@@ -220,7 +240,7 @@ def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
     fresh = [fns.p0.reset(k) for k in jax.random.split(jax.random.key(5), 3)]
     pool_obs, pool_states = stack([o for o, _ in fresh]), stack([s for _, s in fresh])
     auto = jit(lambda keys, states, actions, used: envmod.step_auto_reset(
-        keys, states, actions, P0, pool_obs, pool_states, 1, used))
+        keys, states, actions, P0, D0, pool_obs, pool_states, 1, used))
     keys = jax.random.split(jax.random.key(6), 3)
     all_actions = jnp.stack([actions] * 3)
 
@@ -267,7 +287,7 @@ def test_budgets_never_negative(episodes, rollout):
     assert (r.final_state.budget_left >= 0).all()
     assert (np.diff(r.trajectory.budget_used, axis=1) >= -1e-6).all()
     assert (r.trajectory.budget_used <= 1 + 1e-6).all()
-    turn = P0.robots.turn_cost
+    turn = TURN
     for (_, before, *_), (_, after, _, _, info) in zip(rollout, rollout[1:]):
         # The charge never exceeds what was left, even before the env clamps at zero.
         flown = np.asarray(after.metrics.distance - before.metrics.distance)
@@ -345,7 +365,7 @@ def teleport(state, positions, headings, new_headings):
     candidates = c.replace(
         position=c.position.at[:, 0].set(positions),
         heading=c.heading.at[:, 0].set(jnp.asarray(new_headings, jnp.int32)),
-        cost=c.cost.at[:, 0].set(P0.robots.turn_cost),
+        cost=c.cost.at[:, 0].set(TURN),
         valid=c.valid.at[:, 0].set(True))
     return state.replace(position=positions, heading=jnp.asarray(headings, jnp.int32),
                          candidates=candidates, done=jnp.zeros((N,), bool))
@@ -376,7 +396,7 @@ def test_peer_rounds_take_the_largest_backlog_first(rollout):
     backlog = np.array([[0, 3, 1], [0, 0, 0], [2, 2, 0]])
     assert (know >= backlog).all()
     start = state.replace(fed=jnp.asarray(know - backlog, jnp.int32))
-    after = jax.jit(envmod._feed_gps, static_argnums=1)(start, P0)[0]
+    after = jax.jit(feeding.feed_gps, static_argnums=1)(start, P0)[0]
     # Robot 0 (peers 1, 2): 3 -> 2 from 1, 2 vs 1 -> 1 from 1, tie 1 vs 1 -> peer 1 (offset 1).
     # Robot 2 (peers 0, 1 by offset): tie 2 vs 2 -> 0, then 1 vs 2 -> 1, tie 1 vs 1 -> 0.
     np.testing.assert_array_equal(know - np.asarray(after.fed), [[0, 0, 1], [0, 0, 0], [0, 1, 0]])
@@ -389,7 +409,7 @@ def test_peer_rounds_take_the_largest_backlog_first(rollout):
 
 
 def test_rewards_match_a_dense_float64_gp_at_every_step(rollout):
-    alpha, beta, gamma = P0.reward.alpha, P0.reward.beta, P0.reward.gamma
+    alpha, beta, gamma = CFG.reward.alpha, CFG.reward.beta, CFG.reward.gamma
     cast = jit(jax.vmap(lambda w, p, h: sensing.cast(w, p, h, P0.sensor, P0.size).seen,
                         in_axes=(None, 0, 0)))
     evicted, heard = False, False
@@ -460,9 +480,8 @@ def test_tiny_scene_rewards_by_hand(fns, rollout, window_poses):
     np.testing.assert_allclose(info.reward_exploration, r_e, atol=2e-4)
     np.testing.assert_allclose(info.reward_communication, r_c, atol=2e-4)
     assert (r_e > 0).all() and (r_c[:2] > 0).all()  # 0 and 1 hear each other's new pose
-    np.testing.assert_allclose(before.budget_left - after.budget_left, P0.robots.turn_cost,
-                               atol=1e-6)
-    r = P0.reward
+    np.testing.assert_allclose(before.budget_left - after.budget_left, TURN, atol=1e-6)
+    r = CFG.reward
     np.testing.assert_allclose(reward, r.alpha * r_e + r.beta * expected_u + r.gamma * r_c,
                                atol=5e-3)
     np.testing.assert_allclose(reward, r.alpha * info.reward_exploration
@@ -471,27 +490,133 @@ def test_tiny_scene_rewards_by_hand(fns, rollout, window_poses):
 
 
 # ---------------------------------------------------------------------------------------
+# Robot collisions: a move ending within d_c of another robot
+
+
+def place(state, starts, targets, done=(False,) * N):
+    """Robots at `starts` in an empty world; candidate 0 flies each to its target, same
+    heading (a real move: position changes, no turn)."""
+    starts, targets = jnp.asarray(starts, jnp.float32), jnp.asarray(targets, jnp.float32)
+    c = state.candidates
+    candidates = c.replace(
+        position=c.position.at[:, 0].set(targets), heading=c.heading.at[:, 0].set(state.heading),
+        cost=c.cost.at[:, 0].set(jnp.linalg.norm(targets - starts, axis=-1)),
+        valid=c.valid.at[:, 0].set(True))
+    world = state.world.replace(height=jnp.zeros_like(state.world.height))
+    return state.replace(world=world, position=starts, candidates=candidates,
+                         done=jnp.asarray(done))
+
+
+def test_robot_collisions_count_moves_ending_within_d_c(fns, rollout):
+    """Hand-worked end points; the count is per moving robot and step, from end-point
+    separations only (paths that cross do not count), and d_c is the traced value."""
+    _, state, *_ = rollout[0]
+    actions = jnp.zeros((N,), jnp.int32)
+
+    def collisions(scene, dyn=D0):
+        _, after, *_ = fns.traced.step(jax.random.key(0), scene, actions, dyn)
+        np.testing.assert_array_equal(after.metrics.obstacle_collisions,
+                                      scene.metrics.obstacle_collisions)
+        return (np.asarray(after.metrics.robot_collisions)
+                - np.asarray(scene.metrics.robot_collisions)).tolist(), after
+
+    # 0 and 1 fly towards each other and end 0.03 apart; 2 ends 0.06 from 0, 0.067 from 1.
+    ends = [[0.5, 0.5, 0.5], [0.53, 0.5, 0.5], [0.5, 0.44, 0.5]]
+    meet = place(state, [[0.3, 0.5, 0.5], [0.7, 0.5, 0.5], [0.5, 0.25, 0.5]], ends)
+    counts, after = collisions(meet)  # d_c = 0.05
+    np.testing.assert_allclose(after.position, ends, atol=1e-6)
+    assert counts == [1, 1, 0]
+    assert collisions(meet, D0.with_values(collision_distance=0.065))[0] == [1, 1, 1]
+    assert collisions(meet, D0.with_values(collision_distance=0.02))[0] == [0, 0, 0]
+    # 0 and 1 swap places: their paths cross, their end points are 0.2 apart.
+    cross = place(state, [[0.4, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.2, 0.5]],
+                  [[0.6, 0.5, 0.5], [0.4, 0.5, 0.5], [0.5, 0.3, 0.5]])
+    assert collisions(cross)[0] == [0, 0, 0]
+    # 2 is done and stays put: 0 ends 0.02 from it and counts; 2 did not move and does not.
+    idle = place(state, [[0.3, 0.5, 0.5], [0.7, 0.5, 0.5], [0.5, 0.52, 0.5]],
+                 [[0.5, 0.5, 0.5], [0.85, 0.5, 0.5], [0.5, 0.52, 0.5]], done=(False, False, True))
+    assert collisions(idle)[0] == [1, 0, 0]
+
+
+# ---------------------------------------------------------------------------------------
+# Shared utility GP: r_e from the team's one GP, robots adding their pose in index order
+
+
+def shared_r_e(before, after, order, cfg):
+    """r_e per robot from a dense GP: each robot's newest pose joins the shared GP's
+    inputs (FIFO slots) in `order`; r_e is the relative trace drop it causes."""
+    g = before.utility_gp
+    inputs = np.asarray(g.inputs[0], np.float64).copy()
+    valid = np.asarray(g.valid[0]).copy()
+    count = int(g.count[0])
+    r_e = np.zeros(N)
+    for i in order:
+        fed = int(before.fed[i, i])
+        if fed >= int(after.know[i, i]):
+            continue
+        trace = np_trace(inputs[valid], cfg)
+        inputs[count % cfg.capacity] = np.asarray(after.history_pose[i, min(fed, T_MAX)])
+        valid[count % cfg.capacity] = True
+        count += 1
+        r_e[i] = relative_drop(trace, np_trace(inputs[valid], cfg))
+    return r_e, inputs, valid
+
+
+def test_shared_utility_rewards_follow_robot_order():
+    cfg = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3",
+                                                    "robots.budget=[4.0, 4.0]",
+                                                    "gp.shared_utility=true"])
+    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
+    assert params.utility_gps == 1
+    fns = env_fns(params)
+    act = jit(baselines.random_planner().act)
+    obs, state = fns.reset(jax.random.key(11), dyn)
+    key, order_mattered, evicted = jax.random.key(12), False, False
+    for _ in range(6):
+        key, key_act, key_step = jax.random.split(key, 3)
+        _, actions = act(key_act, jnp.zeros((N, 1)), obs, state)
+        obs, after, _, _, info = fns.step(key_step, state, actions, dyn)
+        before, after_np = to_np(state), to_np(after)
+        r_e, inputs, valid = shared_r_e(before, after_np, range(N), cfg.gp)
+        # One pose among many moves the trace little (r_e ~ 1e-3): a relative tolerance.
+        np.testing.assert_allclose(info.reward_exploration, r_e, rtol=1e-3, atol=1e-6)
+        # The shared GP holds exactly the own poses, in the order added.
+        np.testing.assert_array_equal(after_np.utility_gp.valid[0], valid)
+        np.testing.assert_allclose(after_np.utility_gp.inputs[0][valid], inputs[valid],
+                                   atol=1e-6)
+        reverse = shared_r_e(before, after_np, range(N - 1, -1, -1), cfg.gp)[0]
+        order_mattered |= bool(np.abs(reverse - r_e).max() > 1e-4)
+        evicted |= int(before.utility_gp.count[0]) >= cfg.gp.capacity
+        state = after
+    assert order_mattered, "robots never overlapped: the order 0, 1, 2 went untested"
+    assert evicted, "the shared GP never filled up: eviction went untested"
+
+
+# ---------------------------------------------------------------------------------------
 # Baselines
 
 
-def test_greedy_against_random_over_20_worlds(episodes):
-    """The issue asks for greedy to beat random on average over 20 small worlds. Measured
-    (see the report of issue 4): it does not, reliably. The UCB greedy (utility mean +
-    kappa std, eval defaults kappa = 1, lambda = 0) and the random planner are within a
-    few points of each other in every setting tried, with paired differences of either sign
-    over groups of 20 worlds, e.g. G = 30 grid, 100 worlds: random 10.8%, greedy 12.1%
-    (+1.3 +- 0.8 SE); G = 50 defaults, 100 worlds: grid 19.6 vs 18.1, random layout 18.4 vs
-    19.1. Why: a pose sees about 1.3 windows on average (facade windows, occlusion), so the
-    utility GP's mean barely predicts new discoveries (Spearman 0.19 under random play)
-    and its std (0.08) not at all; std-seeking drives robots upward and outward, away
-    from the windows. So this test pins what holds -- greedy is not clearly worse than
-    random on the same worlds, and both find windows -- and reports the means."""
-    frac = episodes.result.discovered_fraction
-    rand, greedy = frac[:WORLDS], frac[WORLDS:2 * WORLDS]
-    print(f"random {100 * rand.mean():.1f}%  greedy {100 * greedy.mean():.1f}% "
-          f"over {WORLDS} worlds (G = {P0.size}, N = {N})")
-    assert rand.mean() > 0.02 and greedy.mean() > 0.02
-    assert greedy.mean() >= rand.mean() - 0.03
+def test_greedy_follows_its_score_not_chance():
+    """Greedy takes the feasible candidate with the highest utility mean + kappa std -
+    lambda comm mean, whatever the key (its jitter only breaks exact ties). In the default
+    world that score barely predicts new windows (a pose sees about one window), so greedy
+    and random find similar shares there (docs/baselines.md); what greedy must do is follow
+    its score, checked here against the score worked out by hand."""
+    rng = np.random.default_rng(7)
+    features = rng.uniform(0.0, 1.0, (N, 12, len(FEATURES))).astype(np.float32)
+    mask = rng.uniform(size=(N, 12)) < 0.6
+    mask[:, 0] = True
+    obs = Observation(features=jnp.asarray(features), mask=jnp.asarray(mask),
+                      robot_state=jnp.zeros((N, 9)), global_state=jnp.zeros((N, 1)))
+    kappa, lam = 0.7, 0.4
+    col = FEATURES.index
+    score = (features[..., col("utility_mean")] + kappa * features[..., col("utility_std")]
+             - lam * features[..., col("comm_mean")])
+    expected = np.argmax(np.where(mask, score, -np.inf), axis=1)
+    planner = baselines.greedy_planner(kappa, lam)
+    for seed in range(5):
+        _, actions = planner.act(jax.random.key(seed), planner.init(N), obs)
+        np.testing.assert_array_equal(np.asarray(actions), expected)
 
 
 def test_greedy_beats_random_on_average_over_20_worlds_in_the_paper_world():
@@ -501,10 +626,10 @@ def test_greedy_beats_random_on_average_over_20_worlds_in_the_paper_world():
     (measured: 28.7% vs 27.1%; over 40 worlds 30.4% vs 29.3%)."""
     cfg = config.load(REPO / "configs/paper.yaml",
                       ["world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]"])
-    params = envmod.EnvParams.from_config(cfg)
+    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     keys = jax.random.split(jax.random.key(2024), WORLDS)
     greedy = jnp.arange(2 * WORLDS) >= WORLDS
-    run = jit(jax.vmap(lambda key, g: episode.run(key, params, switch_planner(g))))
+    run = jit(jax.vmap(lambda key, g: episode.run(key, params, dyn, switch_planner(g))))
     frac = np.asarray(run(jnp.concatenate([keys, keys]), greedy).discovered_fraction)
     rand, greedy_frac = frac[:WORLDS], frac[WORLDS:]
     print(f"paper world: random {100 * rand.mean():.1f}%, "

@@ -11,6 +11,7 @@ from scipy.linalg import cho_factor, cho_solve
 from scipy.spatial.distance import cdist
 
 from jaxmripp.sim import gp
+from jaxmripp.sim.gp import evict
 from jaxmripp.config import GPConfig
 from jaxmripp.sim.geometry import HEADING_ANGLES
 
@@ -268,6 +269,34 @@ def test_disabled_block_leaves_state_bit_identical():
     after = _add_block(state, random_poses(rng, 3), np.ones(3, np.float32), cfg, eval_poses,
                        np.zeros(3, bool))
     chex.assert_trees_all_equal(after, state)
+
+
+def test_block_eviction_reflections_triangularise_the_evicted_columns():
+    """The evicting step of a block: Q = I - V T V^T is orthogonal, Q R_E vanishes outside
+    the rows E it is mapped into, and T_E^-1 T_E^-T = A_EE^-1; disabled points get no slot."""
+    cfg = GPConfig(capacity=8)
+    eval_poses = gp.evaluation_poses(cfg)
+    rng = np.random.default_rng(12)
+    state = _add_many(gp.empty(cfg, eval_poses), random_poses(rng, 10), rng.normal(size=10),
+                      cfg, eval_poses)
+    slots = evict.block_slots(state, jnp.array([True, False, True, True]), cfg.capacity)
+    refl = evict.reflect_evicted(state.root, slots, cfg.capacity, 4)
+    assert list(np.asarray(slots.slots)) == [2, cfg.capacity, 3, 4]  # count = 10, H = 8
+    evicting = np.asarray(slots.evicting)
+    assert list(evicting) == [True, False, True, True]
+    v, t = np.asarray(refl.v_mat, np.float64), np.asarray(refl.t_mat, np.float64)
+    q = np.eye(cfg.capacity) - v @ t @ v.T
+    np.testing.assert_allclose(q.T @ q, np.eye(cfg.capacity), atol=1e-5)
+    r_e = np.asarray(refl.evicted_cols, np.float64)
+    outside = np.ones(cfg.capacity, bool)
+    outside[[2, 3, 4]] = False
+    np.testing.assert_allclose((q @ r_e)[outside], 0.0, atol=1e-5 * np.abs(r_e).max())
+    a_ee = (r_e.T @ r_e)[np.ix_(evicting, evicting)]
+    t_e_inv = np.asarray(refl.t_e_inv, np.float64)
+    np.testing.assert_allclose(t_e_inv[np.ix_(evicting, evicting)]
+                               @ t_e_inv[np.ix_(evicting, evicting)].T @ a_ee,
+                               np.eye(3), atol=1e-3)
+    np.testing.assert_array_equal(t_e_inv[1], np.eye(4)[1])  # identity for the disabled point
 
 
 def test_block_larger_than_the_capacity_is_refused():

@@ -29,6 +29,7 @@ import pytest
 
 from jaxmripp.evaluation import baselines
 from jaxmripp.sim import comms, env as envmod, sensing
+from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
 from test_runtime import REPO, _slab_hits, init_params
@@ -43,12 +44,12 @@ UTILITY_MEAN, UTILITY_STD, COMM_MEAN = (baselines.UTILITY_MEAN, baselines.UTILIT
 
 @pytest.fixture(scope="module")
 def sim():
-    params = envmod.EnvParams.from_config(CFG)
+    params, dyn = EnvParams.from_config(CFG), DynamicParams.from_config(CFG)
     return SimpleNamespace(
         params=params,
         spec=RuntimeSpec.from_header(json.loads(json.dumps(export.header(CFG)))),
-        reset=jax.jit(lambda key: envmod.reset(key, params)),
-        step=jax.jit(lambda key, state, actions: envmod.step(key, state, actions, params)),
+        reset=jax.jit(lambda key: envmod.reset(key, params, dyn)),
+        step=jax.jit(lambda key, state, actions: envmod.step(key, state, actions, params, dyn)),
         cast=jax.jit(jax.vmap(lambda w, p, h: sensing.cast(w, p, h, params.sensor, params.size),
                               in_axes=(None, 0, 0))),
         greedy=jax.jit(baselines.greedy_planner(KAPPA, LAM).act),
@@ -92,7 +93,7 @@ def runtime_episode(sim, seed, planners, decide):
             np.testing.assert_array_equal(planner.map.grid, np.asarray(state.occupancy[i]),
                                           err_msg=f"step {t} robot {i}: maps differ")
             assert planner.budget_left == pytest.approx(float(state.budget_left[i]), abs=1e-6)
-        contact = np.asarray(comms.contacts(state.position, sim.params.radio.range))
+        contact = np.asarray(comms.contacts(state.position, CFG.radio.range))
         outbox = [planner.message() for planner in planners]
         for i, j in zip(*np.nonzero(contact)):
             planners[i].receive(outbox[j])

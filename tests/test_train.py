@@ -86,7 +86,7 @@ def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
 
 def _random_observations(key, trainer, batch):
     """Observations with random features and masks (at least one feasible candidate)."""
-    example = trainmod.example_observation(trainer.env_params)
+    example = trainmod.example_observation(trainer.env_params, trainer.env_dynamic)
     keys = iter(jax.random.split(key, 8))
     draw = lambda x: jax.random.normal(next(keys), (*batch, *x.shape))
     mask = jax.random.bernoulli(next(keys), 0.6, (*batch, *example.mask.shape))

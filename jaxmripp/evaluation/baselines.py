@@ -1,31 +1,28 @@
 """Non-learning planners with the same interface as the learned policy.
 
 A planner is a pair of pure functions: `init(n_robots) -> memory` and
-`act(key, memory, obs, state) -> (memory, actions)`, where `obs` is the team's observation
-(leading robot axis N), `state` the `EnvState` (only privileged planners such as the oracle
-may read it) and `actions` (N,) are candidate indices. Stateless planners keep a dummy
+`act(key, memory, obs, state, dyn) -> (memory, actions)`, where `obs` is the team's
+observation (leading robot axis N), `state` the `EnvState` (only privileged planners such
+as the oracle may read it), `dyn` the episode's `DynamicParams` (traced; planners that
+model the radio or the budget read it) and `actions` (N,) are candidate indices. Planners
+that read neither state nor dyn default both to None. Stateless planners keep a dummy
 memory so that every planner runs through the same episode code.
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import comms, geometry, gp, sensing
+from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.observation import FEATURES, Observation
 
 UTILITY_MEAN = FEATURES.index("utility_mean")
 UTILITY_STD = FEATURES.index("utility_std")
 COMM_MEAN = FEATURES.index("comm_mean")
-
-
-class Planner(NamedTuple):
-    name: str
-    init: Callable[[int], jax.Array]
-    act: Callable[..., tuple[jax.Array, jax.Array]]  # (key, memory, obs, state)
 
 
 def _no_memory(n_robots: int) -> jax.Array:
@@ -40,7 +37,7 @@ def masked_argmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
 def random_planner() -> Planner:
     """Uniform over each robot's feasible candidates."""
 
-    def act(key, memory, obs, state=None):
+    def act(key, memory, obs, state=None, dyn=None):
         noise = jax.random.uniform(key, obs.mask.shape)
         return memory, masked_argmax(noise, obs.mask)
 
@@ -59,7 +56,7 @@ def greedy_planner(kappa: float = 1.0, lam: float = 0.0, name: str = "greedy") -
     rather than by candidate order, which would favour turning in place.
     """
 
-    def act(key, memory, obs, state=None):
+    def act(key, memory, obs, state=None, dyn=None):
         jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
         return memory, masked_argmax(greedy_scores(obs, kappa, lam) + jitter, obs.mask)
 
@@ -68,7 +65,8 @@ def greedy_planner(kappa: float = 1.0, lam: float = 0.0, name: str = "greedy") -
 
 # ---------------------------------------------------------------------------------------
 # Planners that read more than the observation. They are built per environment shape
-# (`EnvParams` gives the radio range, d_c, GP and sensor settings) and read `state`:
+# (`EnvParams` gives the GP and sensor settings), read the radio range and d_c from the
+# traced `dyn` (so one compilation serves a sweep over them) and read `state`:
 # `coordinated_planner` only what a robot knows anyway (its peers' positions within radio
 # range), `oracle_planner` the ground truth (an upper reference, not a fair competitor).
 
@@ -104,16 +102,16 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
     robots j < i it can hear, and never picks a position within the collision distance
     d_c of one of them unless nothing else is feasible.
     """
-    gp_cfg, d_c, rho = params.gp, params.radio.collision_distance, params.radio.range
+    gp_cfg = params.gp
     score_fn = (lambda obs, k, l: novelty_scores(obs, k, l, gp_cfg.variance)) if novelty \
         else greedy_scores
 
-    def act(key, memory, obs, state):
+    def act(key, memory, obs, state, dyn):
         n = obs.mask.shape[0]
         jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
         base = score_fn(obs, kappa, lam) + jitter
         poses = geometry.pose(state.candidates.position, state.candidates.heading)  # (N, L, 4)
-        hears = comms.contacts(state.position, rho)
+        hears = comms.contacts(state.position, dyn.radio_range)
 
         def choose(carry, i):
             chosen_pose, chosen = carry
@@ -121,7 +119,7 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
             corr = gp.kernel(poses[i], chosen_pose, gp_cfg) / gp_cfg.variance  # (L, N)
             corr = jnp.max(jnp.where(known[None], corr, 0.0), axis=-1)
             gap = jnp.linalg.norm(poses[i, :, None, :3] - chosen_pose[None, :, :3], axis=-1)
-            near = jnp.any(known[None] & (gap <= d_c), axis=-1)
+            near = jnp.any(known[None] & (gap <= dyn.collision_distance), axis=-1)
             allowed = obs.mask[i] & ~near
             allowed = jnp.where(jnp.any(allowed), allowed, obs.mask[i])
             a = masked_argmax(base[i] - mu * corr, allowed)
@@ -144,7 +142,7 @@ def oracle_planner(params, name: str = "oracle") -> Planner:
     nothing in view) are broken by the greedy utility score, squashed to stay below one
     window.
     """
-    def act(key, memory, obs, state):
+    def act(key, memory, obs, state, dyn=None):
         n = obs.mask.shape[0]
         c = state.candidates
         jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)

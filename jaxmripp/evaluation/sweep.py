@@ -1,13 +1,15 @@
 """Evaluation sweeps described by a config's `eval:` section, and the files they write.
 
 A sweep crosses planners x team sizes x world sizes x radio ranges x budgets; every cell
-(a `Shape`) runs `worlds x trials` episodes per planner in one jitted, vmapped call (in
-memory-sized chunks of the same compiled shape), on worlds drawn from fixed seeds so
-every planner sees the same worlds. `run_sweep` returns a `SweepResult`; `write_outputs`
-puts a paper-style markdown table, CSV / JSON of every run, Welch t-tests and plots in a
-folder. `eval.py` is the command-line front end.
+(a `Shape`) runs `worlds x trials` episodes per planner, on worlds drawn from fixed seeds
+so every planner sees the same worlds. Cells with the same team and world size differ
+only in dynamic parameters (radio range, budget), so per planner they are traced and
+compiled once and run as one vmapped call over their stacked `DynamicParams` (in
+memory-sized chunks of the compiled shape; `cells.run_shapes`). `run_sweep` returns a
+`SweepResult`; `outputs.write_outputs` puts a paper-style markdown table, CSV / JSON of
+every run, Welch t-tests and plots in a folder. `eval.py` is the command-line front end.
 
-EvalConfig fields read beyond the base ones (defaults in evaluate.EVAL_DEFAULTS while
+EvalConfig fields read beyond the base ones (defaults in planners.EVAL_DEFAULTS while
 jaxmripp.config does not define them):
 - budget_mode: "team" (eval.budgets are team budgets B, split evenly) or "per_robot"
   (eval.budgets are per-robot budgets; the team gets N times as much);
@@ -16,7 +18,7 @@ jaxmripp.config does not define them):
   rho = 0.2 / 0.15 / 0.12 with G = 75 / 100 / 125);
 - pairs: "a:b" planner pairs to compare with Welch's t-test in every shape (default: the
   first planner against each other one);
-- batch: episodes per vmapped call (0: sized to memory, evaluate.auto_batch);
+- batch: episodes per vmapped call (0: sized to memory, cells.auto_batch);
 - time_planning: also time planner.act alone; render: pictures and GIFs;
 - coordinated_kappa / _lambda / _mu and mcts_simulations / _depth / _considered / _kappa:
   the baselines' knobs (see baselines.coordinated_planner, tree_search).
@@ -24,32 +26,17 @@ jaxmripp.config does not define them):
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import itertools
-import json
 import math
-from pathlib import Path
 from typing import Callable, Sequence
 
-import numpy as np
-
-from jaxmripp.evaluation import evaluate
-from jaxmripp.evaluation.baselines import Planner
 from jaxmripp.config import Config
-from jaxmripp.evaluation.evaluate import Shape, ShapeRun, eval_setting
-
-# Table I of the paper (design.md section 1): N = 3, B = 10, G = 50, 25 worlds x 10 trials.
-PUBLISHED = [
-    ("paper's approach", "inf", "66.00 +- 5.59", "1.58"),
-    ("paper's approach", "0.1", "62.16 +- 8.25", "1.58"),
-    ("Intent (destination modelling)", "inf", "52.31 +- 9.29", "25.39"),
-    ("CAtNIPP greedy", "inf", "45.31 +- 10.59", "3.84"),
-    ("MCTS, sequential allocation", "inf", "48.50 +- 7.81", "153.49"),
-    ("RIG-tree, sequential allocation", "inf", "47.38 +- 10.43", "60.46"),
-    ("random", "inf", "31.83 +- 15.23", "0.06"),
-]
-
+from jaxmripp.evaluation import cells, evaluate
+from jaxmripp.sim.episode import Planner
+from jaxmripp.evaluation.cells import Shape, ShapeRun
+from jaxmripp.evaluation.planners import baseline_planner, eval_setting
+from jaxmripp.evaluation.stats import mean_ci, welch_ttest
 
 def shapes_of(cfg: Config) -> list[Shape]:
     """The sweep's cells in order: world size, team size, radio range, budget."""
@@ -115,7 +102,7 @@ class SweepResult:
     def summary(self) -> list[dict]:
         rows = []
         for r in self.runs:
-            mean, std, half = evaluate.mean_ci(r.discovered)
+            mean, std, half = mean_ci(r.discovered)
             rows.append({
                 "planner": r.planner, "n_robots": r.shape.n_robots, "world_size": r.shape.size,
                 "radio_range": _num(r.shape.radio_range), "budget": r.shape.budget,
@@ -125,7 +112,7 @@ class SweepResult:
                 "step_ms_per_robot_step": r.ms_per_robot_step,
                 "obstacle_collisions": float(r.obstacle_collisions.mean()),
                 "robot_collisions": float(r.robot_collisions.mean()),
-                "compile_s": r.compile_s, "run_s": r.run_s,
+                "compile_s": r.compile_s, "compiled_with_cells": r.cells, "run_s": r.run_s,
             })
         return rows
 
@@ -135,7 +122,7 @@ class SweepResult:
             runs = self.of(shape)
             for a, b in self.pairs:
                 if a in runs and b in runs:
-                    t, df, p = evaluate.welch_ttest(runs[a].discovered, runs[b].discovered)
+                    t, df, p = welch_ttest(runs[a].discovered, runs[b].discovered)
                     rows.append({"shape": shape.label(), "a": a, "b": b,
                                  "mean_a": float(runs[a].discovered.mean()),
                                  "mean_b": float(runs[b].discovered.mean()),
@@ -156,7 +143,7 @@ class SweepResult:
                 rule += "---|---|"
             out += [head + " obstacle coll. | robot coll. |", rule + "---|---|"]
             for name, r in runs.items():
-                mean, std, half = evaluate.mean_ci(r.discovered)
+                mean, std, half = mean_ci(r.discovered)
                 row = f"| {name} | {mean:.2f} +- {std:.2f} | [{mean - half:.2f}, {mean + half:.2f}] |"
                 if timing:
                     row += f" {_ms(r.plan_ms_per_robot_step)} | {_ms(r.ms_per_robot_step)} |"
@@ -202,7 +189,8 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
               log: Callable[[str], None] = print, *, time_planning: bool | None = None,
               batch: int | None = None, keep_pictures: bool = True,
               compiler_options: dict | None = None) -> SweepResult:
-    """Runs every planner on every shape of cfg.eval; prints one progress line per cell."""
+    """Runs every planner on every shape of cfg.eval, one compilation per planner and
+    (team size, world size); prints one progress line per cell and planner."""
     policies = dict(policies or {})
     e = cfg.eval
     names = planner_names(cfg, policies)
@@ -211,29 +199,14 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
     time_planning = eval_setting(cfg, "time_planning") if time_planning is None else time_planning
     batch = eval_setting(cfg, "batch") if batch is None else batch
     shapes = shapes_of(cfg)
+    progress = _Progress(log, len(shapes) * len(names))
     runs = []
-    cells = len(shapes) * len(names)
-    for s_i, shape in enumerate(shapes):
-        params = evaluate.eval_params(cfg, shape.budget, layout=e.layout, robots=shape.n_robots,
-                                      radio_range=shape.radio_range, size=shape.size)
-        for p_i, name in enumerate(names):
-            planner = policies.get(name) or evaluate.baseline_planner(name, params, e)
-            run = evaluate.run_shape(planner, params, shape, e.seed, e.worlds, e.trials,
-                                     batch=batch, keep_pictures=keep_pictures,
-                                     compiler_options=compiler_options)
-            plan = ""
-            if time_planning:
-                ms, compile_s = evaluate.time_planning(planner, params, e.seed,
-                                                       compiler_options=compiler_options)
-                run.plan_ms_per_robot_step = ms
-                run.compile_s += compile_s
-                plan = f", plan {ms:.3f} ms/robot-step"
-            mean, std, _ = evaluate.mean_ci(run.discovered)
-            log(f"[{s_i * len(names) + p_i + 1}/{cells}] {name:<12} {shape.label()}: "
-                f"compile {run.compile_s:.1f} s, run {run.run_s:.1f} s "
-                f"({run.ms_per_robot_step:.3f} ms/robot-step{plan}) -> "
-                f"{mean:.2f} +- {std:.2f} % targets")
-            runs.append(run)
+    for group in static_groups(shapes):
+        runs += _run_group(cfg, group, names, policies, progress, time_planning, batch=batch,
+                           keep_pictures=keep_pictures, compiler_options=compiler_options)
+    # Shape-major, planners in order within a shape, as the tables and files list them.
+    order = {shape: i for i, shape in enumerate(shapes)}
+    runs.sort(key=lambda r: (order[r.shape], names.index(r.planner)))
     pairs = default_pairs(names, eval_setting(cfg, "pairs"))
     for a, b in pairs:
         missing = [x for x in (a, b) if x not in names]
@@ -242,71 +215,56 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
     return SweepResult(runs, pairs)
 
 
-def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None = None,
-                  render: bool = True, gif: bool = True, command: str = "") -> dict[str, Path]:
-    """results.md, runs.csv, runs.json, summary.json and plots in out_dir; returns paths."""
-    from jaxmripp.evaluation import plots as eval_plots  # noqa: PLC0415 (matplotlib only when writing)
-
-    out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = {}
-    text = ["# Evaluation", ""]
-    if command:
-        text += ["Command: `" + command + "`", ""]
-    text += ["Mean +- std of the % of the world's windows discovered; the CI is the 95% "
-             "Student-t interval of the mean. Timings are per robot decision: *plan* is "
-             "`planner.act` alone (vmapped over a few reset states), *sim+plan* a whole "
-             "environment step (sensing, maps, GPs, radio, candidates) amortised over the "
-             "vmapped batch. Collisions are per episode.", "", result.table()]
-    if any(s.n_robots == 3 and s.size == 50 and s.budget == 10 for s in result.shapes()):
-        text += ["### Published (Table I of the paper; its own simulator, seconds per step)", "",
-                 "| planner | rho | % targets | s / step |", "|---|---|---|---|"]
-        text += [f"| {a} | {b} | {c} | {d} |" for a, b, c, d in PUBLISHED]
-        text.append("")
-    paths["table"] = out / "results.md"
-    paths["table"].write_text("\n".join(text) + "\n")
-
-    records = result.records()
-    paths["csv"] = out / "runs.csv"
-    with paths["csv"].open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(records[0]))
-        writer.writeheader()
-        writer.writerows(records)
-    paths["json"] = out / "runs.json"
-    paths["json"].write_text(json.dumps(records))
-    summary = {"summary": result.summary(), "ttests": result.ttests()}
-    if cfg is not None:
-        summary["eval"] = {k: _jsonable(v) for k, v in dataclasses.asdict(cfg.eval).items()}
-    paths["summary"] = out / "summary.json"
-    paths["summary"].write_text(json.dumps(summary, indent=2, default=_jsonable))
-
-    for i, shape in enumerate(result.shapes()):
-        name = f"discovered_vs_budget_{i}.png"
-        paths[name] = eval_plots.discovery_vs_budget(out / name, result.of(shape),
-                                                     title=shape.label())
-    if len({s.n_robots for s in result.shapes()}) > 1:
-        paths["team_size"] = eval_plots.discovery_vs_team_size(
-            out / "discovered_vs_team_size.png", result.runs)
-    if render:
-        first = result.shapes()[0]
-        for name, run in result.of(first).items():
-            if run.snapshot is None:
-                continue
-            paths[f"episode_{name}"] = eval_plots.episode_picture(
-                out / f"episode_{name}.png", run, 0)
-            if gif:
-                paths[f"gif_{name}"] = eval_plots.episode_gif(out / f"episode_{name}.gif", run, 0)
-    return paths
+def _run_group(cfg: Config, group: list[Shape], names: list[str],
+               policies: dict[str, Planner], progress: "_Progress", time_planning: bool,
+               compiler_options: dict | None = None, **options) -> list[ShapeRun]:
+    """Every planner on the cells of one team and world size: one compilation each."""
+    e = cfg.eval
+    n, size = group[0].n_robots, group[0].size
+    params = evaluate.eval_params(cfg, [s.budget for s in group], layout=e.layout,
+                                  robots=n, size=size)
+    dynamics = [evaluate.eval_dynamic(cfg, s.budget, s.radio_range) for s in group]
+    runs = []
+    for name in names:
+        planner = policies.get(name) or baseline_planner(name, params, e)
+        group_runs = cells.run_shapes(planner, params, group, dynamics, e.seed, e.worlds,
+                                      e.trials, compiler_options=compiler_options, **options)
+        if time_planning:
+            ms, compile_s = cells.time_planning(planner, params, dynamics, e.seed,
+                                                compiler_options=compiler_options)
+            for run, plan_ms in zip(group_runs, ms):
+                run.plan_ms_per_robot_step = plan_ms
+                run.compile_s += compile_s
+        for run in group_runs:
+            progress.cell(run)
+        runs += group_runs
+    return runs
 
 
-def _jsonable(v):
-    if isinstance(v, float):
-        return _num(v)
-    if isinstance(v, (tuple, list)):
-        return [_jsonable(x) for x in v]
-    if isinstance(v, (np.floating, np.integer)):
-        return _jsonable(v.item())
-    return v
+def static_groups(shapes: Sequence[Shape]) -> list[list[Shape]]:
+    """Shapes grouped by what is static (team size, world size), in order of appearance."""
+    groups: dict[tuple[int, int], list[Shape]] = {}
+    for shape in shapes:
+        groups.setdefault((shape.n_robots, shape.size), []).append(shape)
+    return list(groups.values())
+
+
+class _Progress:
+    """One log line per finished cell and planner."""
+
+    def __init__(self, log: Callable[[str], None], total: int):
+        self.log, self.total, self.done = log, total, 0
+
+    def cell(self, run: ShapeRun) -> None:
+        self.done += 1
+        mean, std, _ = mean_ci(run.discovered)
+        shared = f" (shared by {run.cells} cells)" if run.cells > 1 else ""
+        plan = ("" if not math.isfinite(run.plan_ms_per_robot_step)
+                else f", plan {run.plan_ms_per_robot_step:.3f} ms/robot-step")
+        self.log(f"[{self.done}/{self.total}] {run.planner:<12} {run.shape.label()}: "
+                 f"compile {run.compile_s:.1f} s{shared}, run {run.run_s:.1f} s "
+                 f"({run.ms_per_robot_step:.3f} ms/robot-step{plan}) -> "
+                 f"{mean:.2f} +- {std:.2f} % targets")
 
 
 def policy_mismatches(run_cfg: Config, cfg: Config) -> list[str]:

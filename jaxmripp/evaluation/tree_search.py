@@ -39,7 +39,8 @@ import mctx
 from flax import struct
 
 from jaxmripp.sim import comms, geometry, gp
-from jaxmripp.evaluation.baselines import Planner, _no_memory, masked_argmax
+from jaxmripp.evaluation.baselines import _no_memory, masked_argmax
+from jaxmripp.sim.episode import Planner
 
 _NEG = -1e9  # prior logit of infeasible actions
 
@@ -69,6 +70,7 @@ class Context:
     slot_kept: jax.Array  # (L,) bool the candidate's slot is a real draw
     peer_pose: jax.Array  # (N, 4) poses chosen by robots earlier in the order
     peer_valid: jax.Array  # (N,) bool chosen and within radio range
+    turn_cost: jax.Array  # () DynamicParams.turn_cost
 
 
 def _scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty: bool = True):
@@ -95,9 +97,9 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
                         considered: int = 4, kappa: float = 0.3, discount: float = 0.9,
                         temperature: float = 0.1, gumbel_scale: float = 0.0,
                         novelty: bool = True, name: str = "mcts") -> Planner:
-    """The MCTS baseline (module docstring); `params` is the env's EnvParams."""
+    """The MCTS baseline (module docstring); `params` is the env's static EnvParams, the
+    turn cost and radio range come traced from `act`'s `dyn`."""
     gp_cfg, size = params.gp, params.size
-    turn_cost = params.robots.turn_cost
     reach = params.candidates.shell[1]
     shared = params.gp.shared_utility
 
@@ -106,7 +108,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         position = node.position + ctx.offset
         distance = jnp.linalg.norm(ctx.offset, axis=-1)
         turned = ctx.heading != node.heading
-        cost = distance + turn_cost * turned
+        cost = distance + ctx.turn_cost * turned
         valid = (ctx.slot_kept & geometry.inside_world(position) & (cost <= node.budget)
                  & ((distance > 0) | turned)
                  & geometry.mapped_clear(node.position, position, ctx.occupancy, size, reach))
@@ -117,7 +119,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         reward = jnp.where(ok, node.child_score[action], 0.0)
         offset = ctx.offset[action]
         heading = ctx.heading[action]
-        cost = jnp.linalg.norm(offset) + turn_cost * (heading != node.heading)
+        cost = jnp.linalg.norm(offset) + ctx.turn_cost * (heading != node.heading)
         position = node.position + offset
         slot = jnp.minimum(node.depth, node.path.shape[0] - 1)
         child = node.replace(
@@ -140,10 +142,10 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         del rng
         return jax.vmap(expand, in_axes=(None, 0, 0))(ctx, action, node)
 
-    def act(key, memory, obs, state):
+    def act(key, memory, obs, state, dyn):
         n = obs.mask.shape[0]
         c = state.candidates
-        hears = comms.contacts(state.position, params.radio.range)
+        hears = comms.contacts(state.position, dyn.radio_range)
         slot_kept = jnp.repeat(jnp.any(c.valid.reshape(n, -1, geometry.N_HEADINGS), axis=-1),
                                geometry.N_HEADINGS, axis=-1)
         keys = jax.random.split(key, n)
@@ -154,7 +156,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
             ctx = Context(utility=utility, occupancy=state.occupancy[i],
                           offset=c.position[i] - state.position[i], heading=c.heading[i],
                           slot_kept=slot_kept[i], peer_pose=peer_pose,
-                          peer_valid=peer_chosen & hears[i])
+                          peer_valid=peer_chosen & hears[i], turn_cost=dyn.turn_cost)
             mask = obs.mask[i]
             poses = geometry.pose(c.position[i], c.heading[i])
             path = jnp.zeros((max_depth, 4), jnp.float32)

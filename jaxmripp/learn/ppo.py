@@ -18,7 +18,7 @@ from flax import struct
 
 from jaxmripp.sim import env as envmod
 from jaxmripp.config import Config, PPOConfig
-from jaxmripp.sim.env import EnvParams
+from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
 
@@ -88,21 +88,23 @@ def apply_batched(network: ActorCritic, params, memory, obs: Observation):
     return unflat(new_memory), unflat(logits), unflat(value)
 
 
-def start_runner(key, cfg: Config, params: EnvParams) -> Runner:
-    obs, state = jax.vmap(envmod.reset, in_axes=(0, None))(
-        jax.random.split(key, cfg.train.envs), params)
+def start_runner(key, cfg: Config, params: EnvParams, dyn: DynamicParams) -> Runner:
+    obs, state = jax.vmap(envmod.reset, in_axes=(0, None, None))(
+        jax.random.split(key, cfg.train.envs), params, dyn)
     memory = jnp.broadcast_to(initial_memory(cfg.policy),
                               (cfg.train.envs, params.n_robots, cfg.policy.width))
     return Runner(state, obs, memory, jnp.zeros((cfg.train.envs, params.n_robots)))
 
 
 def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
-            params: EnvParams):
-    """Steps every environment `rollout_steps` times; returns (runner, transitions, stats)."""
+            params: EnvParams, dyn: DynamicParams):
+    """Steps every environment `rollout_steps` times; returns (runner, transitions, stats).
+
+    `params` is static (jit it as a closure or static argument), `dyn` may be traced."""
     envs = cfg.train.envs
     key_pool, key_steps = jax.random.split(key)
-    reset_obs, reset_state = jax.vmap(envmod.reset, in_axes=(0, None))(
-        jax.random.split(key_pool, envs), params)
+    reset_obs, reset_state = jax.vmap(envmod.reset, in_axes=(0, None, None))(
+        jax.random.split(key_pool, envs), params, dyn)
     max_resets = max(1, math.ceil(cfg.train.reset_share * envs))
 
     def body(carry, key):
@@ -114,7 +116,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         log_prob = dist.log_prob(action)
         active = jnp.any(runner.obs.mask, axis=-1)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
-            jax.random.split(key_env, envs), runner.env_state, action, params, reset_obs,
+            jax.random.split(key_env, envs), runner.env_state, action, params, dyn, reset_obs,
             reset_state, max_resets, pool_used)
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)

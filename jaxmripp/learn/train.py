@@ -25,7 +25,7 @@ from jaxmripp.sim import env as envmod
 from jaxmripp.learn import ppo
 from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
-from jaxmripp.sim.env import EnvParams
+from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.learn.policy import initial_memory
 
 
@@ -39,13 +39,15 @@ class TrainState:
 
 @dataclass
 class Trainer:
-    """Everything static about a run: config, env params, network, optimiser, chunk fn."""
+    """Everything about a run but its state: config, static and dynamic env params,
+    network, optimiser and the jitted chunk, `chunk(state, env_dynamic)`."""
 
     cfg: Config
     env_params: EnvParams
+    env_dynamic: DynamicParams
     network: Any
     optimizer: Any
-    chunk: Callable[[TrainState], tuple[TrainState, dict]]
+    chunk: Callable[[TrainState, DynamicParams], tuple[TrainState, dict]]
 
     @classmethod
     @functools.lru_cache(maxsize=8)
@@ -54,29 +56,29 @@ class Trainer:
         env_params = EnvParams.from_config(cfg)
         network = ppo.make_network(cfg)
         optimizer = ppo.make_optimizer(cfg.ppo)
-        return cls(cfg, env_params, network, optimizer,
+        return cls(cfg, env_params, DynamicParams.from_config(cfg), network, optimizer,
                    jax.jit(_chunk_fn(cfg, env_params, network, optimizer), donate_argnums=0))
 
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
         params = self.network.init(jax.random.fold_in(key, 1 << 30),
                                    initial_memory(self.cfg.policy),
-                                   example_observation(self.env_params))
+                                   example_observation(self.env_params, self.env_dynamic))
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32))
 
 
-def example_observation(params: EnvParams):
+def example_observation(params: EnvParams, dyn: DynamicParams):
     """Zeros shaped like one robot's observation, without running (or compiling) a reset."""
-    shapes = jax.eval_shape(lambda: envmod.reset(jax.random.PRNGKey(0), params)[0])
+    shapes = jax.eval_shape(lambda d: envmod.reset(jax.random.PRNGKey(0), params, d)[0], dyn)
     return jax.tree.map(lambda s: jnp.zeros(s.shape[1:], s.dtype), shapes)
 
 
 def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):
-    def one_update(carry, _):
+    def one_update(dyn, carry, _):
         state, runner = carry
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
         runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
-                                                 cfg, env_params)
+                                                 cfg, env_params, dyn)
         _, _, last_value = ppo.apply_batched(network, state.params, runner.memory, runner.obs)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
@@ -87,11 +89,11 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):
                        active_samples=active.sum())
         return (TrainState(params, opt_state, state.key, state.update + 1), runner), metrics
 
-    def chunk(state: TrainState):
+    def chunk(state: TrainState, dyn: DynamicParams):
         key_start = jax.random.fold_in(jax.random.fold_in(state.key, state.update), 1 << 29)
-        runner = ppo.start_runner(key_start, cfg, env_params)
-        (state, _), metrics = jax.lax.scan(one_update, (state, runner), None,
-                                           length=cfg.train.updates_per_chunk)
+        runner = ppo.start_runner(key_start, cfg, env_params, dyn)
+        (state, _), metrics = jax.lax.scan(functools.partial(one_update, dyn), (state, runner),
+                                           None, length=cfg.train.updates_per_chunk)
         return state, metrics
 
     return chunk
@@ -146,7 +148,7 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
             log(f"stopped after {stop_after_chunks} chunk(s) as asked; --resume continues")
             break
         start = time.perf_counter()
-        state, metrics = trainer.chunk(state)
+        state, metrics = trainer.chunk(state, trainer.env_dynamic)
         record = summarise(metrics, cfg)
         seconds = time.perf_counter() - start
         updates = int(state.update)

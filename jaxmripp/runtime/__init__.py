@@ -7,7 +7,12 @@
     decision = planner.decide()                                 # decision.pose, .reason
 
 See `jaxmripp.runtime.planner` for the round, `weights` for the export format and
-`messages` for the radio protocol.
+`messages` for the radio protocol. The planner's parts: `validation` (inputs),
+`feeding` (GP feeding, rule in `jaxmripp.spec.feeding`), `candidates` (sampling),
+`observation` (policy inputs, rule in `jaxmripp.spec.layout`), `safety` (the filter),
+`policy` (the network), `gp` and `mapping`. Every module here imports only NumPy, the
+standard library, `jaxmripp.spec` and other runtime modules
+(tests/test_runtime_numpy_only.py checks it).
 """
 
 from jaxmripp.runtime.candidates import Candidates

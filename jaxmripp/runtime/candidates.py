@@ -44,7 +44,9 @@ def clear_of_robots(points: np.ndarray, others: np.ndarray, collision_distance: 
     if len(others) == 0:
         return np.ones(len(points), bool)
     gap2 = np.sum(np.square(points[:, None, :] - np.asarray(others, F32)[None]), axis=-1)
-    return np.all(gap2 > F32(collision_distance ** 2), axis=-1)  # as JAX rounds it
+    # d_c squared in float32, as the env squares its traced float32 d_c (F32(d_c ** 2),
+    # rounded once from double, is one ulp off for d_c = 0.05).
+    return np.all(gap2 > np.square(F32(collision_distance)), axis=-1)
 
 
 def sample(

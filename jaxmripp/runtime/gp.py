@@ -4,7 +4,7 @@ Same kernel (Matern-1/2 over (x, y, z) plus the heading on a circle of radius
 heading_scale), same square root R of the inverse kernel matrix extended by one border row
 per point, same first-in first-out eviction by one Householder reflection, same float32
 arithmetic in the same order, so predictions agree with the JAX GP to float32 rounding
-(see jaxmripp/gp.py for the derivation). Only what a robot needs onboard is here: `add`
+(see `jaxmripp.sim.gp` for the derivation). Only what a robot needs onboard is here: `add`
 and `predict`; the covariance trace over an evaluation set (a training reward) is kept only
 when evaluation poses are given.
 """

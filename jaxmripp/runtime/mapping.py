@@ -36,7 +36,6 @@ def inside_world(position: np.ndarray) -> np.ndarray:
     return np.all((position >= 0.0) & (position <= 1.0), axis=-1)
 
 
-
 def segment_voxels(start: np.ndarray, ends: np.ndarray, size: int,
                    max_length: float) -> tuple[np.ndarray, np.ndarray]:
     """(3,), (M, 3) -> points and voxels (M, n, 3) of the spec's segment rule

@@ -18,7 +18,6 @@ from jaxmripp.spec.grid import N_HEADINGS
 from jaxmripp.spec.protocol import MAX_BYTES, MESSAGE_TYPE, PROTOCOL_VERSION
 
 
-
 @dataclasses.dataclass(frozen=True)
 class Message:
     sender: int

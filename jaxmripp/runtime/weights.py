@@ -37,8 +37,8 @@ from typing import Any, Mapping
 import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
-from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 from jaxmripp.runtime.policy import NumpyPolicy
+from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
 FORMAT = "jaxmripp-policy"
 FORMAT_VERSION = 1

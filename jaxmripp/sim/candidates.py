@@ -4,7 +4,8 @@ Positions are drawn on a thin spherical shell around the robot (design.md sectio
 filtered by what the robot itself knows -- its own occupancy map, the robots it can hear
 and its remaining budget -- and compacted into a fixed number of slots, each expanded into
 the four headings. Everything is a pure function of its inputs and an explicit PRNG key,
-with static shapes, so `sample` can be jitted and vmapped over robots and environments.
+with static shapes, so `sample` can be jitted and vmapped over robots and environments;
+the turn cost and collision distance may be traced (sweeps vmap over them).
 """
 
 from __future__ import annotations
@@ -15,7 +16,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import geometry
-from jaxmripp.config import CandidateConfig, RobotConfig
+from jaxmripp.config import CandidateConfig
 
 
 @struct.dataclass
@@ -43,8 +44,8 @@ def sample(
     others: jax.Array,
     others_known: jax.Array,
     cand: CandidateConfig,
-    robots: RobotConfig,
-    collision_distance: float,
+    turn_cost: float | jax.Array,
+    collision_distance: float | jax.Array,
     size: int,
 ) -> Candidates:
     """Samples one robot's candidate poses for the next step.
@@ -57,8 +58,9 @@ def sample(
       occupancy: (G, G, G) int8 its own occupancy map (geometry.FREE/UNKNOWN/OCCUPIED).
       others: (N, 3) positions of all robots (the caller's own row is ignored if masked).
       others_known: (N,) bool robots this one can hear (within radio range); False for self.
-      cand, robots: static configuration.
-      collision_distance: d_c; positions at or within it of a known robot are rejected.
+      cand: static configuration (shapes: K positions, oversampling, shell).
+      turn_cost: () charged on a heading change.
+      collision_distance: () d_c; positions at or within it of a known robot are rejected.
       size: G, voxels per side.
 
     Returns:
@@ -103,7 +105,7 @@ def sample(
     # and every executed action makes progress.
     headings = jnp.arange(geometry.N_HEADINGS, dtype=jnp.int32)
     turns = headings != heading
-    cost = distance[:, None] + robots.turn_cost * turns.astype(jnp.float32)
+    cost = distance[:, None] + turn_cost * turns.astype(jnp.float32)
     is_current = (jnp.arange(n_draws) == 0)[:, None] & ~turns
     pose_ok = place_ok[:, None] & (cost <= budget_left) & ~is_current
     keep = jnp.any(pose_ok, axis=-1)  # the cheapest remaining pose fits the budget
@@ -130,7 +132,7 @@ def sample(
 
 
 def _clear_of_robots(
-    points: jax.Array, others: jax.Array, known: jax.Array, collision_distance: float
+    points: jax.Array, others: jax.Array, known: jax.Array, collision_distance
 ) -> jax.Array:
     """(M, 3), (N, 3), (N,) -> (M,) True where every known robot is beyond d_c."""
     gap2 = jnp.sum(jnp.square(points[:, None, :] - others[None, :, :]), axis=-1)

@@ -2,13 +2,23 @@
 
 from __future__ import annotations
 
+from typing import Callable, NamedTuple
+
 import jax
 import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import env as envmod
-from jaxmripp.evaluation.baselines import Planner
-from jaxmripp.sim.env import EnvParams
+from jaxmripp.sim.params import DynamicParams, EnvParams
+
+
+class Planner(NamedTuple):
+    """What an episode runs per robot team: `init(N)` gives the (N, M) memory, `act(key,
+    memory, obs, state, dyn)` the new memory and (N,) candidate indices."""
+
+    name: str
+    init: Callable[[int], jax.Array]
+    act: Callable[..., tuple[jax.Array, jax.Array]]
 
 
 @struct.dataclass
@@ -36,17 +46,18 @@ class EpisodeResult:
     trajectory: Trajectory
 
 
-def run(key: jax.Array, params: EnvParams, planner: Planner,
+def run(key: jax.Array, params: EnvParams, dyn: DynamicParams, planner: Planner,
         world_key: jax.Array | None = None) -> EpisodeResult:
     """Resets a world and lets `planner` act until T_max steps have passed.
 
     The world (and budget, first candidates) come from `world_key` when given, so several
     trials can share one world; otherwise both world and trial are drawn from `key`.
+    `dyn` may be traced: vmapping over it runs several settings in one compilation.
     """
     if world_key is None:
         world_key, key = jax.random.split(key)
     key_reset, key_run = world_key, key
-    obs, state = envmod.reset(key_reset, params)
+    obs, state = envmod.reset(key_reset, params, dyn)
     memory = planner.init(params.n_robots)
     team_budget = state.budget_initial * params.n_robots
 
@@ -56,8 +67,8 @@ def run(key: jax.Array, params: EnvParams, planner: Planner,
     def body(carry, key):
         obs, state, memory = carry
         key_act, key_step = jax.random.split(key)
-        memory, actions = planner.act(key_act, memory, obs, state)
-        obs, state, reward, _, info = envmod.step(key_step, state, actions, params)
+        memory, actions = planner.act(key_act, memory, obs, state, dyn)
+        obs, state, reward, _, info = envmod.step(key_step, state, actions, params, dyn)
         out = (state.position, state.heading, info.acted, info.discovered_fraction,
                spent(state), reward, state.discovered)
         return (obs, state, memory), out

@@ -2,7 +2,7 @@
 
 The env fills an `Observation` per robot; the policy reads one robot's observation
 (callers `vmap` over robots and environments, so every field may carry leading batch
-axes). Only array-level libraries are imported here so that any module can depend on it.
+axes). `observe` builds the team's observations from an `EnvState`.
 
 Shapes (L candidates, F = len(FEATURES), S = len(ROBOT_STATE), N robots):
     features      (..., L, F)        float32, columns in FEATURES order
@@ -15,15 +15,21 @@ Shapes (L candidates, F = len(FEATURES), S = len(ROBOT_STATE), N robots):
 
 from __future__ import annotations
 
+import chex
 import flax.struct
 import jax
+import jax.numpy as jnp
+
+from jaxmripp.sim import geometry, gp
+from jaxmripp.sim.params import EnvParams
+from jaxmripp.sim.types import EnvState, discovered_fraction
 
 # The layout is defined once, next to the exported file format, in the NumPy-only runtime
 # (which must not import this module). FEATURES per candidate: dx, dy, dz offset from the
 # robot; x, y, z absolute position; one-hot heading; posterior mean and standard deviation
 # of the utility and communication GPs; path cost; budget left after the move.
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
-from jaxmripp.spec.layout import FEATURES, ROBOT_STATE  # noqa: E402
+from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
 N_FEATURES = len(FEATURES)  # F = 16
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9
@@ -41,3 +47,45 @@ class Observation:
     mask: jax.Array  # (..., L) bool, True = feasible candidate
     robot_state: jax.Array  # (..., S) float32, layout ROBOT_STATE
     global_state: jax.Array  # (..., N*S + 2) float32, for a centralised critic
+
+
+def observe(state: EnvState, params: EnvParams) -> Observation:
+    """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
+
+    Only static parameters are read: budgets enter as fractions of the initial budget.
+    """
+    n = params.n_robots
+    c = state.candidates
+    poses = geometry.pose(c.position, c.heading)
+    utility_gp = state.utility_gp if not params.gp.shared_utility else jax.tree.map(
+        lambda x: jnp.broadcast_to(x, (n, *x.shape[1:])), state.utility_gp)
+    predict = jax.vmap(gp.predict, in_axes=(0, 0, None))
+    u_mean, u_var = predict(utility_gp, poses, params.gp)
+    c_mean, c_var = predict(state.comm_gp, poses, params.gp)
+    heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
+    budget = jnp.maximum(state.budget_initial, 1e-6)
+    features = jnp.concatenate([
+        (c.position - state.position[:, None]) / params.candidates.shell[1],
+        c.position,
+        heading_onehot,
+        u_mean[..., None], jnp.sqrt(u_var)[..., None],
+        c_mean[..., None], jnp.sqrt(c_var)[..., None],
+        c.cost[..., None],
+        ((state.budget_left[:, None] - c.cost) / budget)[..., None],
+    ], axis=-1)
+    robot_state = jnp.concatenate([
+        state.position,
+        jax.nn.one_hot(state.heading, geometry.N_HEADINGS),
+        (state.budget_left / budget)[:, None],
+        jnp.broadcast_to(state.step / params.max_steps, (n, 1)),
+    ], axis=-1)
+    global_state = jnp.concatenate([
+        robot_state.reshape(-1),
+        jnp.stack([discovered_fraction(state), jnp.mean(state.budget_left) / budget]),
+    ])
+    mask = c.valid & ~state.done[:, None]
+    chex.assert_shape(features, (n, params.n_candidates, N_FEATURES))
+    chex.assert_shape(robot_state, (n, N_ROBOT_STATE))
+    return Observation(features=features.astype(jnp.float32), mask=mask,
+                       robot_state=robot_state.astype(jnp.float32),
+                       global_state=jnp.broadcast_to(global_state, (n, global_state.shape[0])))

@@ -1,13 +1,25 @@
-"""The policy's input columns: written by the environment, read by the policy, checked by
-the exporter and rebuilt by the runtime.
+"""The policy's input columns and how each is computed: written by the environment
+(`jaxmripp.sim.observation.observe`), read by the policy, checked by the exporter and
+rebuilt by the runtime (`jaxmripp.runtime.observation`). This docstring is the one
+written rule; the two implementations must give the same float32 numbers for the same
+state.
 
-FEATURES per candidate: dx, dy, dz offset from the robot divided by the largest candidate
-distance; x, y, z absolute position; one-hot heading; posterior mean and standard
-deviation of the utility and communication GPs; path cost; budget left after the move as
-a fraction of the initial budget.
-ROBOT_STATE: position, one-hot heading, budget left (fraction), step / T_max.
+FEATURES, one row per candidate pose (position p, heading h, cost c) of a robot at
+position q with budget b_left of its initial share b_0 (b = max(b_0, 1e-6) below):
+    dx, dy, dz      (p - q) / shell[1], the offset over the largest candidate distance
+    x, y, z         p, the absolute position in the unit cube
+    heading_0..3    one-hot h (headings of `jaxmripp.spec.grid`)
+    utility_mean    posterior mean of the robot's utility GP at the pose (p, angle of h)
+    utility_std     square root of its posterior latent variance (clamped to [0, variance])
+    comm_mean, comm_std  the same two for the communication GP
+    cost            c = |p - q| + turn_cost [h != current heading]
+    budget_after    (b_left - c) / b, the budget fraction left after the move
+The GPs are read after this round's feeding (`jaxmripp.spec.feeding`; with the training
+option gp.shared_utility the env's utility GP is the team's, a robot's is always its own).
+ROBOT_STATE: q, one-hot current heading, b_left / b, step / T_max (T_max = episode length).
 A centralised critic also reads every robot's ROBOT_STATE (robot-major) followed by the
-N_GLOBAL_EXTRA team values: the discovered fraction and the mean budget left (fraction).
+N_GLOBAL_EXTRA team values: the discovered fraction and the mean budget left / b.
+Padding candidates (invalid) still get rows computed by these formulas; the mask hides them.
 """
 
 FEATURES = (

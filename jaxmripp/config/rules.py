@@ -1,0 +1,201 @@
+"""Allowed values: one rule per key, checks across keys, and `validate`.
+
+Each rule is (predicate, description of what is allowed); a failed rule raises
+`ConfigError` with one line naming the key, the value and the description.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from jaxmripp.config.errors import ConfigError, shown
+from jaxmripp.config.sections import Config
+
+
+def _range(lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False):
+    """A number in [lo, hi], each end open on request."""
+    def check(v):
+        above = v > lo if lo_open else v >= lo
+        below = v < hi if hi_open else v <= hi
+        return above and below
+
+    left = "(" if lo_open else "["
+    right = ")" if hi_open else "]"
+    return check, f"a number in {left}{lo}, {hi}{right}"
+
+
+def _choice(*options):
+    """One of the given strings."""
+    return (lambda v: v in options), "one of " + ", ".join(options)
+
+
+def _each(rule):
+    """A list whose every element satisfies rule."""
+    check, text = rule
+    return (lambda v: all(check(x) for x in v)), f"a list of {text.replace('a number', 'numbers')}"
+
+
+def _pair(rule):
+    """[min, max] with both satisfying rule and min <= max."""
+    check, text = rule
+    return (lambda v: all(check(x) for x in v) and v[0] <= v[1]), (
+        f"[min, max] with min <= max, each {text}"
+    )
+
+
+_POSITIVE = _range(0, lo_open=True)
+_NONNEG = _range(0)
+_UNIT = _range(0, 1)
+PLANNERS = ("policy", "random", "greedy", "coordinated", "mcts", "oracle")
+
+RULES: dict[str, tuple] = {
+    "world.size": _range(10, 256),
+    "world.layout": _choice("grid", "random"),
+    "world.buildings": _range(1, 10_000),
+    "world.footprint": _range(1, 16),
+    "world.height_range": _pair(_range(0, 1, lo_open=True)),
+    "world.targets": _pair(_range(1, 100_000)),
+    "world.target_placement": _choice("facade", "footprint"),
+    "world.clearance": _range(0, 8),
+    "robots.count": _range(1, 256),
+    "robots.budget": _pair(_POSITIVE),
+    "robots.turn_cost": _NONNEG,
+    "robots.start": (lambda v: len(v) == 3 and all(0 <= x <= 1 for x in v), "3 numbers in [0, 1]"),
+    "robots.start_heading": _range(0, 3),
+    "sensor.model": _choice("raycast", "frustum"),
+    "sensor.fov_deg": _range(1, 170),
+    "sensor.range": _range(0, 1, lo_open=True),
+    "sensor.rays_per_voxel": _range(0.5, 8),
+    "radio.range": _NONNEG,
+    "radio.collision_distance": _NONNEG,
+    "candidates.positions": _range(1, 512),
+    "candidates.shell": _pair(_range(0, 1, lo_open=True)),
+    "candidates.oversample": _range(1, 32),
+    "gp.capacity": _range(2, 4096),
+    "gp.length_scale": _POSITIVE,
+    "gp.heading_scale": _NONNEG,
+    "gp.variance": _POSITIVE,
+    "gp.noise": _range(1e-6, 10),
+    "gp.eval_grid": _range(1, 16),
+    "gp.catchup_rounds": _range(0, 64),
+    "reward.alpha": _NONNEG,
+    "reward.beta": _NONNEG,
+    "reward.gamma": _NONNEG,
+    "reward.utility_norm": _POSITIVE,
+    "episode.max_steps": _range(1, 4096),
+    "policy.width": _range(4, 4096),
+    "policy.heads": _range(1, 64),
+    "policy.layers": _range(0, 16),
+    "policy.ff_mult": _range(1, 16),
+    "ppo.algo": _choice("ippo", "mappo"),
+    "ppo.learning_rate": _range(0, 1, lo_open=True),
+    "ppo.lr_decay": _range(0, 1, lo_open=True),
+    "ppo.lr_decay_every": _range(1, 10**9),
+    "ppo.clip": _range(0, 1, lo_open=True),
+    "ppo.epochs": _range(1, 100),
+    "ppo.minibatches": _range(1, 4096),
+    "ppo.discount": _UNIT,
+    "ppo.gae_lambda": _UNIT,
+    "ppo.entropy_coef": _NONNEG,
+    "ppo.value_coef": _NONNEG,
+    "ppo.max_grad_norm": _POSITIVE,
+    "train.seed": _range(0, 2**31 - 1),
+    "train.envs": _range(1, 1 << 20),
+    "train.rollout_steps": _range(1, 4096),
+    "train.reset_share": _range(0, 1, lo_open=True),
+    "train.updates": _range(0, 10**9),
+    "train.updates_per_chunk": _range(1, 10**6),
+    "train.keep_checkpoints": _range(1, 1000),
+    "train.eval_worlds": _range(1, 100_000),
+    "train.eval_budget": _POSITIVE,
+    "eval.planners": (
+        lambda v: len(v) > 0 and all(p in PLANNERS for p in v),
+        "a non-empty list from " + ", ".join(PLANNERS),
+    ),
+    "eval.team_sizes": _each(_range(1, 256)),
+    "eval.world_sizes": _each(_range(10, 256)),
+    "eval.radio_ranges": _each(_NONNEG),
+    "eval.budgets": _each(_POSITIVE),
+    "eval.worlds": _range(1, 100_000),
+    "eval.trials": _range(1, 100_000),
+    "eval.seed": _range(0, 2**31 - 1),
+    "eval.layout": _choice("grid", "random"),
+    "eval.greedy_kappa": _NONNEG,
+    "eval.greedy_lambda": _NONNEG,
+    "eval.coordinated_kappa": _NONNEG,
+    "eval.coordinated_lambda": _NONNEG,
+    "eval.coordinated_mu": _NONNEG,
+    "eval.mcts_simulations": _range(1, 4096),
+    "eval.mcts_depth": _range(1, 64),
+    "eval.mcts_considered": _range(1, 512),
+    "eval.mcts_kappa": _NONNEG,
+    "eval.budget_mode": _choice("team", "per_robot"),
+    "eval.zip_with_size": (lambda v: all(x in ("team_sizes", "radio_ranges", "budgets")
+                                         for x in v),
+                           "a list from team_sizes, radio_ranges, budgets"),
+    "eval.pairs": (lambda v: all(x.count(":") == 1 and all(x.split(":")) for x in v),
+                   'a list of "a:b" planner pairs'),
+    "eval.batch": _range(0, 10**6),
+}
+
+
+def _world_checks(cfg: Config) -> list[tuple[str, Any, str]]:
+    """The world's sizes must fit together, and its windows suit the sensor."""
+    problems = []
+    w = cfg.world
+    if w.footprint + 2 * w.clearance >= w.size:
+        problems.append(("world.size", w.size,
+                         f"larger than footprint + 2 * clearance = {w.footprint + 2 * w.clearance}"))
+    lots = (w.size - w.clearance) // (w.footprint + w.clearance)
+    if w.n_buildings > lots * lots:
+        problems.append(("world.buildings", w.buildings,
+                         f"at most {lots * lots} buildings fit a {w.size}^3 world"))
+    if w.target_placement == "facade" and w.clearance < 1:
+        problems.append(("world.clearance", w.clearance,
+                         "at least 1 with facade windows (every window must face free air)"))
+    if w.target_placement == "footprint" and cfg.sensor.model == "raycast":
+        problems.append(("world.target_placement", w.target_placement,
+                         "facade with sensor.model=raycast (footprint windows are inside walls)"))
+    return problems
+
+
+def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
+    """Radio, network, sweep and training settings that depend on one another."""
+    problems = []
+    r = cfg.radio
+    if r.collision_distance >= r.range:
+        problems.append(("radio.collision_distance", r.collision_distance,
+                         f"less than radio.range = {r.range}"))
+    if cfg.policy.width % cfg.policy.heads:
+        problems.append(("policy.width", cfg.policy.width,
+                         f"a multiple of policy.heads = {cfg.policy.heads}"))
+    for name in cfg.eval.zip_with_size:
+        if len(getattr(cfg.eval, name)) != len(cfg.eval.world_sizes):
+            problems.append((f"eval.{name}", getattr(cfg.eval, name),
+                             f"one entry per world size ({len(cfg.eval.world_sizes)}), "
+                             "because eval.zip_with_size pairs them"))
+    if cfg.train.updates % cfg.train.updates_per_chunk:
+        problems.append(("train.updates", cfg.train.updates,
+                         f"a multiple of train.updates_per_chunk = {cfg.train.updates_per_chunk}"))
+    if cfg.train.envs % cfg.ppo.minibatches:
+        problems.append(("ppo.minibatches", cfg.ppo.minibatches,
+                         f"a divisor of train.envs = {cfg.train.envs}"))
+    return problems
+
+
+def _cross_checks(cfg: Config) -> list[tuple[str, Any, str]]:
+    """Constraints that involve more than one value: (key, value, allowed)."""
+    return _world_checks(cfg) + _run_checks(cfg)
+
+
+def validate(cfg: Config) -> Config:
+    """Returns cfg, or raises ConfigError for the first rule or cross-check it breaks."""
+    for key, (check, allowed) in RULES.items():
+        section, name = key.split(".")
+        value = getattr(getattr(cfg, section), name)
+        if not check(value):
+            raise ConfigError(f"{key}: got {shown(value)}; allowed: {allowed}")
+    for key, value, allowed in _cross_checks(cfg):
+        raise ConfigError(f"{key}: got {shown(value)}; allowed: {allowed}")
+    return cfg

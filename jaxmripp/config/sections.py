@@ -1,0 +1,183 @@
+"""The configuration's sections: frozen dataclasses with the defaults.
+
+Every section is a frozen dataclass, so a whole `Config` is hashable and can be passed to
+`jax.jit` as a static argument. What values are allowed is in `rules`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+REFERENCE_SIZE = 50  # the paper's grid; counts below are quoted at this size
+
+
+@dataclasses.dataclass(frozen=True)
+class WorldConfig:
+    size: int = 50  # G: voxels per side of the unit cube
+    layout: str = "grid"  # grid (training) | random (test)
+    buildings: int = 25  # at G = 50; scaled by (G / 50)^2 to keep the density
+    footprint: int = 3  # building footprint side, voxels
+    height_range: tuple[float, float] = (0.2, 0.99)  # fraction of the world height
+    targets: tuple[int, int] = (250, 250)  # windows at G = 50 (min, max); scaled like buildings
+    target_placement: str = "facade"  # facade (line of sight) | footprint (reference)
+    clearance: int = 1  # free voxels kept around every footprint and the world border
+
+    @property
+    def scale(self) -> float:
+        return (self.size / REFERENCE_SIZE) ** 2
+
+    @property
+    def n_buildings(self) -> int:
+        return max(1, round(self.buildings * self.scale))
+
+    @property
+    def target_capacity(self) -> int:
+        return max(1, round(self.targets[1] * self.scale))
+
+    @property
+    def target_min(self) -> int:
+        return max(1, round(self.targets[0] * self.scale))
+
+
+@dataclasses.dataclass(frozen=True)
+class RobotConfig:
+    count: int = 3  # N
+    budget: tuple[float, float] = (10.0, 10.0)  # team budget B (min, max), split evenly
+    turn_cost: float = 0.05  # charged when the heading changes
+    start: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    start_heading: int = 1  # index into headings (0, pi/2, pi, 3pi/2)
+
+
+@dataclasses.dataclass(frozen=True)
+class SensorConfig:
+    model: str = "raycast"  # raycast (occlusion) | frustum (reference, no occlusion)
+    fov_deg: float = 90.0
+    range: float = 0.24  # fraction of the world size
+    rays_per_voxel: float = 2.0  # ray grid density at the far end of the range
+
+
+@dataclasses.dataclass(frozen=True)
+class RadioConfig:
+    range: float = 0.3  # rho; .inf for global communication
+    relay: bool = False  # forward everything known (multi-hop) instead of single hop
+    collision_distance: float = 0.05  # d_c
+
+
+@dataclasses.dataclass(frozen=True)
+class CandidateConfig:
+    positions: int = 20  # K; L = 4 K candidate poses
+    shell: tuple[float, float] = (0.19, 0.21)  # sampling distance range
+    oversample: int = 3  # positions drawn per kept position before masking
+
+    @property
+    def count(self) -> int:
+        return 4 * self.positions
+
+
+@dataclasses.dataclass(frozen=True)
+class GPConfig:
+    capacity: int = 64  # H
+    length_scale: float = 0.2
+    heading_scale: float = 0.1  # distance added per radian of heading difference
+    variance: float = 1.0
+    noise: float = 0.01
+    eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
+    catchup_rounds: int = 1  # peer rounds per step beyond N - 1 (env._feed_gps)
+    shared_utility: bool = False  # one utility GP per environment fed by all robots
+
+
+@dataclasses.dataclass(frozen=True)
+class RewardConfig:
+    alpha: float = 20.0  # exploration (utility GP trace drop)
+    beta: float = 0.02  # per newly discovered target
+    gamma: float = 1.0  # communication GP trace drop
+    utility_norm: float = 16.0
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeConfig:
+    max_steps: int = 32  # T_max
+
+
+@dataclasses.dataclass(frozen=True)
+class PolicyConfig:
+    width: int = 64
+    heads: int = 4
+    layers: int = 1
+    ff_mult: int = 4
+    comm_features: bool = True  # False: ablation without communication-GP inputs
+
+
+@dataclasses.dataclass(frozen=True)
+class PPOConfig:
+    algo: str = "ippo"  # ippo | mappo
+    learning_rate: float = 3e-4
+    lr_decay: float = 0.96
+    lr_decay_every: int = 512  # optimiser steps
+    clip: float = 0.2
+    epochs: int = 4
+    minibatches: int = 4
+    discount: float = 0.99
+    gae_lambda: float = 0.95
+    entropy_coef: float = 0.01
+    value_coef: float = 0.5
+    max_grad_norm: float = 0.5
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    seed: int = 0
+    name: str = "default"
+    envs: int = 64
+    rollout_steps: int = 16
+    reset_share: float = 0.25  # most environments restarted per rollout step, as a share
+    updates: int = 100
+    updates_per_chunk: int = 10
+    keep_checkpoints: int = 3
+    eval_worlds: int = 100
+    eval_budget: float = 10.0
+
+
+@dataclasses.dataclass(frozen=True)
+class EvalConfig:
+    planners: tuple[str, ...] = ("policy", "greedy", "random")
+    team_sizes: tuple[int, ...] = (3,)
+    world_sizes: tuple[int, ...] = (50,)
+    radio_ranges: tuple[float, ...] = (math.inf,)
+    budgets: tuple[float, ...] = (10.0,)
+    worlds: int = 25
+    trials: int = 10
+    seed: int = 1000
+    layout: str = "random"
+    greedy_kappa: float = 1.0  # tuned on training-layout worlds: see README
+    greedy_lambda: float = 0.0
+    coordinated_kappa: float = 0.3
+    coordinated_lambda: float = 0.0
+    coordinated_mu: float = 0.3
+    mcts_simulations: int = 16
+    mcts_depth: int = 2
+    mcts_considered: int = 4
+    mcts_kappa: float = 0.3
+    budget_mode: str = "team"  # team: budgets are team budgets | per_robot
+    zip_with_size: tuple[str, ...] = ()  # lists that pair element-wise with world_sizes
+    pairs: tuple[str, ...] = ()  # Welch t-tests, each "a:b"
+    batch: int = 0  # episodes per vmapped call; 0 sizes it to memory
+    time_planning: bool = True
+    render: bool = True
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    world: WorldConfig = WorldConfig()
+    robots: RobotConfig = RobotConfig()
+    sensor: SensorConfig = SensorConfig()
+    radio: RadioConfig = RadioConfig()
+    candidates: CandidateConfig = CandidateConfig()
+    gp: GPConfig = GPConfig()
+    reward: RewardConfig = RewardConfig()
+    episode: EpisodeConfig = EpisodeConfig()
+    policy: PolicyConfig = PolicyConfig()
+    ppo: PPOConfig = PPOConfig()
+    train: TrainConfig = TrainConfig()
+    eval: EvalConfig = EvalConfig()

@@ -1,0 +1,76 @@
+"""Planners by name: the trained policy at deployment and the baselines of eval.planners."""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+
+from jaxmripp.config import Config
+from jaxmripp.evaluation import baselines
+from jaxmripp.sim.episode import Planner
+from jaxmripp.sim.params import EnvParams
+
+
+def policy_planner(network, params, width: int, name: str = "policy") -> Planner:
+    """The trained policy at deployment: each robot takes its most probable candidate."""
+    from jaxmripp.learn.ppo import apply_batched  # noqa: PLC0415 (ppo imports the env)
+
+    def init(n_robots):
+        return jnp.zeros((n_robots, width), jnp.float32)
+
+    def act(key, memory, obs, state=None, dyn=None):
+        memory, logits, _ = apply_batched(network, params, memory, obs)
+        return memory, baselines.masked_argmax(logits, obs.mask)
+
+    return Planner(name, init, act)
+
+
+def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
+    """A non-learning planner for one static shape, by its name in EvalConfig.planners.
+
+    Tuning knobs are read from `eval_cfg` when present (see `EVAL_DEFAULTS`); radio range,
+    d_c and turn cost come traced at `act` time, so one planner serves a whole sweep.
+    """
+    get = lambda field: getattr(eval_cfg, field, EVAL_DEFAULTS.get(field))  # noqa: E731
+    if name == "random":
+        return baselines.random_planner()
+    if name == "greedy":
+        return baselines.greedy_planner(get("greedy_kappa"), get("greedy_lambda"))
+    if name == "coordinated":
+        return baselines.coordinated_planner(params, get("coordinated_kappa"),
+                                             get("coordinated_lambda"), get("coordinated_mu"))
+    if name == "oracle":
+        return baselines.oracle_planner(params)
+    if name == "mcts":
+        from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
+
+        return tree_search_planner(params, simulations=get("mcts_simulations"),
+                                   max_depth=get("mcts_depth"),
+                                   considered=get("mcts_considered"), kappa=get("mcts_kappa"))
+    raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, mcts, "
+                     "oracle (and policy, which needs --policy)")
+
+
+# Defaults of the EvalConfig fields read beyond the base ones; used while
+# jaxmripp.config.EvalConfig does not define them.
+EVAL_DEFAULTS = {
+    "greedy_kappa": 1.0,
+    "greedy_lambda": 0.0,
+    "coordinated_kappa": 0.3,
+    "coordinated_lambda": 0.0,
+    "coordinated_mu": 0.3,
+    "mcts_simulations": 16,
+    "mcts_depth": 2,
+    "mcts_considered": 4,
+    "mcts_kappa": 0.3,
+    "budget_mode": "team",
+    "zip_with_size": (),
+    "pairs": (),
+    "batch": 0,
+    "time_planning": True,
+    "render": True,
+}
+
+
+def eval_setting(cfg: Config, field: str):
+    """cfg.eval.<field>, or its default while EvalConfig lacks the field."""
+    return getattr(cfg.eval, field, EVAL_DEFAULTS.get(field))

@@ -1,0 +1,62 @@
+"""The environment's state and what a step reports: pytrees of arrays, per-robot data
+stacked on a leading robot axis of size N."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxmripp.sim import candidates as cands
+from jaxmripp.sim import gp, world as worldmod
+
+
+@struct.dataclass
+class Metrics:
+    obstacle_collisions: jax.Array  # (N,) int32 moves stopped by a building
+    robot_collisions: jax.Array  # (N,) int32 moves ending within d_c of another robot
+    distance: jax.Array  # (N,) float32 path length flown
+    contacts: jax.Array  # () int32 robot pairs in radio contact, summed over steps
+
+
+@struct.dataclass
+class EnvState:
+    """N robots, T target slots, G voxels per side, H = T_max + 1 history entries."""
+
+    world: worldmod.World
+    position: jax.Array  # (N, 3) float32
+    heading: jax.Array  # (N,) int32 index into geometry.HEADING_ANGLES
+    budget_left: jax.Array  # (N,) float32
+    budget_initial: jax.Array  # () float32 per-robot share of the team budget
+    done: jax.Array  # (N,) bool: out of affordable candidates or out of steps
+    occupancy: jax.Array  # (N, G, G, G) int8 per-robot maps (geometry codes)
+    discovered: jax.Array  # (T,) bool: found by anybody
+    history_pose: jax.Array  # (N, H, 4) poses each robot visited, in order
+    history_utility: jax.Array  # (N, H) normalised number of windows seen from each
+    know: jax.Array  # (N, N) int32: robot i knows the first know[i, j] entries of j's history
+    fed: jax.Array  # (N, N) int32: entries of j's history already in robot i's GPs
+    utility_gp: gp.GPState  # leading axis N (or 1 with a shared utility GP)
+    comm_gp: gp.GPState  # leading axis N
+    candidates: cands.Candidates  # (N, L) the poses the current observation offers
+    step: jax.Array  # () int32
+    metrics: Metrics
+
+
+@struct.dataclass
+class StepInfo:
+    reward_exploration: jax.Array  # (N,) r_e
+    reward_discovery: jax.Array  # (N,) r_u, new targets (ties split evenly)
+    reward_communication: jax.Array  # (N,) r_c
+    discovered_fraction: jax.Array  # ()
+    acted: jax.Array  # (N,) bool: the robot was active and its action counted this step
+    metrics: Metrics
+
+
+def discovered_fraction(state: EnvState) -> jax.Array:
+    """Share of the world's real windows found so far (divides by the real count)."""
+    total = jnp.maximum(state.world.target_valid.sum(), 1)
+    return (state.discovered & state.world.target_valid).sum() / total
+
+
+def episode_done(state: EnvState) -> jax.Array:
+    return jnp.all(state.done)

@@ -1,0 +1,141 @@
+"""The exporter (`jaxmripp.export`): its layout check and its command line."""
+
+from __future__ import annotations
+
+import copy
+import json
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from jaxmripp import config as cfgmod, export
+from jaxmripp.learn import policy as policymod
+from jaxmripp.learn.checkpoint import Checkpoints
+from jaxmripp.learn.train import Trainer
+from jaxmripp.runtime import weights
+from test_runtime import CFG, REPO, init_params
+
+
+@pytest.fixture(scope="module")
+def flat_params():
+    _, params = init_params(CFG, seed=1)
+    return params, policymod.flatten_params(params)
+
+
+# ---------------------------------------------------------------------------------------
+# The layout check
+
+
+def test_a_matching_export_passes_the_check(flat_params):
+    _, flat = flat_params
+    export.check_layout(export.header(CFG), flat)  # no error
+
+
+@pytest.mark.parametrize("doctor", [
+    lambda h: h["layout"]["features"].reverse(),
+    lambda h: h["layout"]["features"].pop(),
+    lambda h: h["layout"]["features"].append("altitude"),
+    lambda h: h["layout"]["robot_state"].remove("step"),
+    lambda h: h.pop("layout"),
+], ids=["reordered", "column dropped", "column added", "state column dropped", "no layout"])
+def test_a_doctored_header_layout_is_refused(flat_params, doctor):
+    _, flat = flat_params
+    head = copy.deepcopy(export.header(CFG))
+    doctor(head)
+    with pytest.raises(export.ExportError, match="layout") as err:
+        export.check_layout(head, flat)
+    assert "\n" not in str(err.value)
+
+
+def test_weights_of_another_input_width_are_refused(flat_params):
+    _, flat = flat_params
+    head = export.header(CFG)
+    narrow = dict(flat, **{"embed/kernel": flat["embed/kernel"][:-1]})
+    with pytest.raises(export.ExportError, match="embed reads 15 inputs; .* gives 16"):
+        export.check_layout(head, narrow)
+    wide = dict(flat, **{"state_embed/kernel": np.zeros((10, CFG.policy.width), np.float32)})
+    with pytest.raises(export.ExportError, match="state_embed reads 10 inputs"):
+        export.check_layout(head, wide)
+    # A central critic reads every robot's state plus the team values.
+    central = copy.deepcopy(head)
+    central["policy"]["central_critic"] = True
+    with pytest.raises(export.ExportError, match="no layer global_embed; .* reading 29 inputs"):
+        export.check_layout(central, flat)
+    width = CFG.robots.count * len(weights.ROBOT_STATE) + 2
+    export.check_layout(central, dict(flat, **{
+        "global_embed/kernel": np.zeros((width, CFG.policy.width), np.float32)}))
+
+
+def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_path,
+                                                             monkeypatch):
+    params, _ = flat_params
+    good = export.header(CFG)
+    doctored = copy.deepcopy(good)
+    doctored["layout"]["features"][0], doctored["layout"]["features"][1] = "dy", "dx"
+    monkeypatch.setattr(export, "header", lambda cfg, source=None: doctored)
+    with pytest.raises(export.ExportError, match="layout.features"):
+        export.export(CFG, params, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------------------
+# The command line: python -m jaxmripp.export RUN_DIR [--best] [--out DIR]
+
+
+@pytest.fixture(scope="module")
+def run_dir(tmp_path_factory):
+    """A training run directory as `jaxmripp.learn.train.train` leaves it, without the
+    training: config.yaml and one checkpoint of the initial state."""
+    cfg = cfgmod.load(REPO / "configs/smoke.yaml")
+    run = tmp_path_factory.mktemp("runs") / "tiny"
+    run.mkdir()
+    (run / "config.yaml").write_text(cfgmod.to_yaml(cfg))
+    state = Trainer.build(cfg).init()
+    checkpoints = Checkpoints(run / "checkpoints", cfg.train.keep_checkpoints)
+    try:
+        checkpoints.save(0, state, score=0.0)
+    finally:
+        checkpoints.close()
+    return run, cfg, state
+
+
+def test_cli_exports_a_run_directory(run_dir, tmp_path, capsys):
+    run, cfg, state = run_dir
+    assert export.main([str(run)]) == 0
+    out = run / "export"
+    assert sorted(p.name for p in out.iterdir()) == ["policy.json", "policy.npz"]
+    assert f"wrote {out / 'policy.npz'} and {out / 'policy.json'}" in capsys.readouterr().out
+    loaded = weights.load(out)
+    flat = policymod.flatten_params(state.params)
+    assert loaded.weights.keys() == flat.keys()
+    for name in flat:
+        np.testing.assert_array_equal(loaded.weights[name], flat[name])
+    assert loaded.header["source"] == {"run_dir": str(run), "checkpoint": "last", "update": 0}
+    assert loaded.header["config"]["world"]["size"] == cfg.world.size
+    assert loaded.spec.team_size == cfg.robots.count
+
+    # --best and --out: the best checkpoint, written where asked.
+    assert export.main([str(run), "--best", "--out", str(tmp_path / "best")]) == 0
+    best = json.loads((tmp_path / "best" / "policy.json").read_text())
+    assert best["source"]["checkpoint"] == "best"
+    assert best["weights"]["sha256"] == loaded.header["weights"]["sha256"]
+
+
+def test_cli_run_directory_without_checkpoint_fails_in_one_line(tmp_path, capsys):
+    cfg = cfgmod.load(REPO / "configs/smoke.yaml")
+    (tmp_path / "config.yaml").write_text(cfgmod.to_yaml(cfg))
+    assert export.main([str(tmp_path)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: ") and "no checkpoint" in err and "\n" not in err
+    assert not (tmp_path / "export").exists()
+
+
+def test_cli_missing_run_directory_fails_in_one_line(tmp_path):
+    missing = tmp_path / "no-such-run"
+    result = subprocess.run([sys.executable, "-m", "jaxmripp.export", str(missing)], cwd=REPO,
+                            capture_output=True, text=True, timeout=120)
+    assert result.returncode == 1
+    assert result.stderr.strip() == f"error: {missing}: no such run directory"
+    assert result.stdout == "" and not missing.exists()

@@ -1,0 +1,61 @@
+"""The package's import arrows point one way: spec <- config <- sim <- learn <- evaluation.
+
+Top-level modules (pipeline, export, demo, allocator) sit above every package; the runtime
+imports only itself and the spec, and no package imports the runtime or a top-level module.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import jaxmripp
+
+PACKAGE = Path(jaxmripp.__file__).parent
+LAYERS = ("spec", "config", "sim", "learn", "evaluation")
+
+
+def imported_subpackages(path: Path) -> set[str]:
+    """Second components of every jaxmripp.* name the module imports (lazy ones too)."""
+    found = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.split(".")[0] == "jaxmripp":
+            parts = node.module.split(".")
+            found |= {parts[1]} if len(parts) > 1 else {a.name for a in node.names}
+        elif isinstance(node, ast.Import):
+            found |= {a.name.split(".")[1] for a in node.names
+                      if a.name.startswith("jaxmripp.")}
+    return found
+
+
+def allowed(layer: str) -> set[str]:
+    if layer == "runtime":
+        return {"runtime", "spec"}
+    return set(LAYERS[:LAYERS.index(layer) + 1])
+
+
+def violations(root: Path) -> list[str]:
+    out = []
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root).parts
+        if len(parts) < 2:  # top-level modules may import anything
+            continue
+        for target in imported_subpackages(path) - allowed(parts[0]):
+            out.append(f"{path.relative_to(root)} imports jaxmripp.{target}")
+    return out
+
+
+def test_every_import_points_down():
+    assert set(LAYERS) | {"runtime"} == {p.name for p in PACKAGE.iterdir()
+                                         if p.is_dir() and (p / "__init__.py").exists()}
+    assert violations(PACKAGE) == []
+
+
+def test_checker_catches_an_upward_import(tmp_path):
+    (tmp_path / "sim").mkdir()
+    (tmp_path / "sim" / "env.py").write_text(
+        "def f():\n    from jaxmripp.evaluation import baselines\n")
+    (tmp_path / "runtime").mkdir()
+    (tmp_path / "runtime" / "x.py").write_text("from jaxmripp.sim import gp\n")
+    assert violations(tmp_path) == ["runtime/x.py imports jaxmripp.sim",
+                                    "sim/env.py imports jaxmripp.evaluation"]

@@ -1,0 +1,312 @@
+"""Parity of the onboard runtime with the JAX env when the runtime samples its OWN candidates.
+
+tests/test_runtime_episode.py hands the env's candidates to the runtime, so it never
+exercises the runtime's sampler in a real episode. Here every robot's `OnboardPlanner`
+decides among candidates it drew itself, and the env flies exactly that decision (the
+runtime's candidate sets are put into the env state before its step, so the action index
+points at the runtime's pose). Both sides then stand in the same state every round --
+same maps, budgets, histories, radio contacts, GPs -- and are compared there.
+
+What must agree exactly or to float32 rounding, every round and robot:
+- the map and budget the runtime keeps equal the env's;
+- both candidate sets obey the written rules of `jaxmripp.spec` and design.md section 1,
+  checked by an independent implementation here: 4 headings per slot, cost = distance +
+  turn cost, kept slots first, padding at the robot, and a pose valid exactly when it is
+  inside the world, on the shell (or the robot's own position for a turn), clear of every
+  voxel the robot has mapped OCCUPIED at the segment rule's samples
+  (`jaxmripp.spec.grid.segment_samples`), farther than d_c from every robot heard, within
+  the budget, and not the current pose;
+- the observation features the runtime builds for the env's candidate set equal the env's
+  observation (so the two implementations of `jaxmripp.spec.layout` agree), and each
+  env column means what the layout says (dx is the offset over the shell radius, ...);
+- the GPs hold the same points in the same slots (the feeding rule of
+  `jaxmripp.spec.feeding`), so the GP columns at the runtime's own candidates equal the
+  JAX GPs' predictions there.
+
+What cannot agree exactly: the draws. The runtime uses NumPy's generator, the env JAX's
+threefry keys, so the two candidate sets of one round are different samples of the same
+distribution (tests/test_runtime.py checks that equal uniforms give equal candidates).
+For those, pooled over all rounds, the distributions are compared instead: distance on the
+shell, direction (elevation, azimuth) and the number of kept slots (two-sample
+Kolmogorov-Smirnov and paired means), each drawn from the same states on both sides.
+"""
+
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from jaxmripp import config, export
+from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
+from jaxmripp.sim import candidates as jax_candidates
+from jaxmripp.sim import comms, env as envmod, gp as jax_gp, sensing
+from jaxmripp.sim.params import DynamicParams
+from jaxmripp.spec.grid import HEADING_ANGLES, N_HEADINGS, OCCUPIED, segment_samples
+from test_runtime import EXPECTED_FEATURES, EXPECTED_ROBOT_STATE, REPO
+
+CFG = config.load(REPO / "configs/smoke.yaml", [
+    "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
+    "candidates.positions=8", "candidates.oversample=3"])
+SEEDS = tuple(range(8))  # the episodes are cheap next to compiling the env
+KAPPA, LAM = 1.0, 0.5  # both GPs enter the greedy score
+COL = {name: k for k, name in enumerate(EXPECTED_FEATURES)}
+STATE = {name: k for k, name in enumerate(EXPECTED_ROBOT_STATE)}
+ALPHA = 1e-3  # KS tests: the draws are fixed by the seeds, this only sets how strict
+
+
+class JaxSide:
+    """Every call into the JAX env and its parts, in one place."""
+
+    def __init__(self, cfg):
+        self.params = p = envmod.EnvParams.from_config(cfg)
+        self.radio_range = cfg.radio.range
+        dyn = DynamicParams.from_config(cfg)
+        self._reset = jax.jit(lambda key: envmod.reset(key, p, dyn))
+        self._step = jax.jit(lambda key, state, actions: envmod.step(key, state, actions, p,
+                                                                     dyn))
+        self._cast = jax.jit(jax.vmap(lambda w, q, h: sensing.cast(w, q, h, p.sensor, p.size),
+                                      in_axes=(None, 0, 0)))
+        self._predict = jax.jit(lambda g, poses: jax_gp.predict(g, poses, p.gp))
+
+    def reset(self, seed):
+        return self._reset(jax.random.key(seed))
+
+    def step(self, seed, t, state, candidates, actions):
+        """Steps with the runtime's candidate sets in place of the env's own."""
+        state = state.replace(candidates=jax_candidates.Candidates(
+            *(jnp.asarray(np.stack(x)) for x in zip(*candidates))))
+        key = jax.random.fold_in(jax.random.key(seed), t + 1)
+        obs, state, *_ = self._step(key, state, jnp.asarray(actions, jnp.int32))
+        return obs, state
+
+    def camera(self, state):
+        return jax.tree.map(np.asarray, self._cast(state.world, state.position, state.heading))
+
+    def contacts(self, state):
+        return np.asarray(comms.contacts(state.position, self.radio_range))
+
+    def predict(self, gp_state, poses):
+        return tuple(np.asarray(x) for x in self._predict(gp_state, poses))
+
+
+@pytest.fixture(scope="module")
+def sim():
+    return SimpleNamespace(jax=JaxSide(CFG), spec=RuntimeSpec.from_header(
+        json.loads(json.dumps(export.header(CFG)))))
+
+
+def robot(tree, i):
+    """Robot i's slice of a NumPy copy of an env pytree (candidates, a GP state)."""
+    return jax.tree.map(lambda x: x[i], tree)
+
+
+# ---------------------------------------------------------------------------------------
+# The candidate rules, written again from the spec (not calling either implementation)
+
+
+def feasible(c, q, heading, budget_left, occupancy, others, spec):
+    """(L,) bool: which of the poses c may be offered, by the written rules."""
+    g, (lo, hi) = spec.size, spec.shell
+    gap = np.linalg.norm(c.position - q, axis=-1)
+    inside = np.all((c.position >= 0) & (c.position <= 1), axis=-1)
+    on_shell = (gap == 0) | ((gap >= lo - 1e-5) & (gap <= hi + 1e-5))
+    n = segment_samples(g, hi)  # k / n of the way, k = 1..n
+    t = np.arange(1, n + 1, dtype=np.float32)[:, None] / np.float32(n)
+    voxels = np.clip(np.floor((q + t[None] * (c.position - q)[:, None]) * g), 0, g - 1)
+    voxels = voxels.astype(int)
+    clear = np.all(occupancy[voxels[..., 0], voxels[..., 1], voxels[..., 2]] != OCCUPIED,
+                   axis=-1)
+    apart = np.ones(len(c.position), bool)
+    for other in others:
+        apart &= np.sum(np.square(c.position - other), axis=-1) > np.square(
+            np.float32(spec.collision_distance))
+    current = (gap == 0) & (c.heading == heading)
+    return inside & on_shell & clear & apart & (c.cost <= budget_left) & ~current
+
+
+def check_rules(c, q, heading, budget_left, occupancy, others, spec, where):
+    k = spec.positions
+    np.testing.assert_array_equal(c.heading, np.tile(np.arange(N_HEADINGS), k), err_msg=where)
+    slots = c.position.reshape(k, N_HEADINGS, 3)
+    assert np.all(slots == slots[:, :1]), f"{where}: a slot's four poses differ in position"
+    turn = (c.heading != heading).astype(np.float32)
+    cost = np.linalg.norm(c.position - q, axis=-1) + np.float32(spec.turn_cost) * turn
+    np.testing.assert_allclose(c.cost, cost, atol=1e-6, err_msg=f"{where}: cost")
+    kept = c.valid.reshape(k, N_HEADINGS).any(axis=1)
+    assert not np.any(kept[1:] & ~kept[:-1]), f"{where}: kept slots are not first"
+    assert np.all(slots[~kept] == q), f"{where}: padding is not at the robot"
+    ok = feasible(c, q, heading, budget_left, occupancy, others, spec)
+    bad = np.nonzero(c.valid & ~ok)[0]
+    assert not bad.size, f"{where}: poses {bad} offered against the rules"
+    # A kept position offers every heading the rules allow (none is dropped on the way).
+    allowed = np.repeat(kept, N_HEADINGS)
+    np.testing.assert_array_equal(c.valid[allowed], ok[allowed], err_msg=where)
+    return kept.sum()
+
+
+def check_column_meaning(features, robot_state, c, q, heading, budget_left, budget_initial,
+                         step, spec):
+    """The env's observation holds, column by column, what jaxmripp.spec.layout says."""
+    f, b = features, max(np.float32(budget_initial), np.float32(1e-6))
+    dx = [COL["dx"], COL["dy"], COL["dz"]]
+    np.testing.assert_allclose(f[:, dx], (c.position - q) / np.float32(spec.shell[1]),
+                               atol=1e-6)
+    np.testing.assert_array_equal(f[:, [COL["x"], COL["y"], COL["z"]]], c.position)
+    onehot = [COL[f"heading_{h}"] for h in range(N_HEADINGS)]
+    np.testing.assert_array_equal(f[:, onehot], np.eye(N_HEADINGS)[c.heading])
+    np.testing.assert_array_equal(f[:, COL["cost"]], c.cost)
+    np.testing.assert_allclose(f[:, COL["budget_after"]], (budget_left - c.cost) / b,
+                               atol=1e-6)
+    assert np.all(f[:, COL["utility_std"]] >= 0) and np.all(f[:, COL["comm_std"]] >= 0)
+    s = robot_state
+    np.testing.assert_array_equal(s[[STATE["x"], STATE["y"], STATE["z"]]], q)
+    np.testing.assert_array_equal(s[[STATE[f"heading_{h}"] for h in range(N_HEADINGS)]],
+                                  np.eye(N_HEADINGS)[heading])
+    assert s[STATE["budget_left"]] == pytest.approx(budget_left / b, abs=1e-6)
+    assert s[STATE["step"]] == pytest.approx(step / CFG.episode.max_steps)
+
+
+def check_gps(planner, utility_gp, comm_gp, where):
+    """Same points in the same slots: the feeding order agrees (spec.feeding)."""
+    for ours, theirs, name in ((planner.utility_gp, utility_gp, "utility"),
+                               (planner.comm_gp, comm_gp, "comm")):
+        for field in ("inputs", "targets", "valid", "stamp"):
+            np.testing.assert_array_equal(getattr(ours, field), getattr(theirs, field),
+                                          err_msg=f"{where}: {name} GP {field}")
+
+
+def draws(c, q):
+    """Distance, elevation (z of the unit direction) and azimuth of the kept drawn slots."""
+    slots = c.position.reshape(-1, N_HEADINGS, 3)[c.valid.reshape(-1, N_HEADINGS).any(1), 0]
+    offset = slots - q
+    gap = np.linalg.norm(offset, axis=-1)
+    offset, gap = offset[gap > 0], gap[gap > 0]  # the turn in place is not a draw
+    return np.stack([gap, offset[:, 2] / gap, np.arctan2(offset[:, 1], offset[:, 0])], 1)
+
+
+# ---------------------------------------------------------------------------------------
+# The episodes
+
+
+def fly_episode(sim, seed, pooled):
+    """One episode flown by runtime-sampled decisions; checks every round, pools draws.
+    Returns the number of decisions checked."""
+    spec, jx = sim.spec, sim.jax
+    obs, state = jx.reset(seed)
+    n = jx.params.n_robots
+    planners = [OnboardPlanner(spec, i, float(state.budget_initial), team_size=n,
+                               mode="greedy", kappa=KAPPA, lam=LAM, seed=1000 * seed + i)
+                for i in range(n)]
+    blocked, checked = np.zeros(n, bool), 0
+    for t in range(jx.params.max_steps):
+        now = jax.tree.map(np.asarray, state)  # one transfer per round
+        if now.done.all():
+            break
+        sense_and_talk(jx, now, planners, blocked, t)
+        o = jax.tree.map(np.asarray, obs)
+        chosen, actions = [], []
+        for i, planner in enumerate(planners):
+            if now.done[i]:
+                # The env retires a robot without candidates; the runtime would keep
+                # trying. Keep the two in step: no decision, but this round's feeding.
+                planner.feed_gps()
+                check_gps(planner, robot(now.utility_gp, i), robot(now.comm_gp, i),
+                          f"seed {seed} round {t} robot {i} (retired)")
+                d = None
+            else:
+                d = planner.decide()
+                check_round(sim, now, o, planner, d, i, t, seed, pooled)
+                checked += 1
+            fly = d is not None and not d.hover
+            c = d.candidates if d is not None else robot(now.candidates, i)
+            chosen.append(Candidates(c.position, c.heading, c.cost, c.valid & fly))
+            actions.append(d.index if fly else 0)
+        obs, state = jx.step(seed, t, state, chosen, actions)
+        blocked = np.asarray(state.metrics.obstacle_collisions) > now.metrics.obstacle_collisions
+    return checked
+
+
+def sense_and_talk(jx, now, planners, blocked, t):
+    casts = jx.camera(now)
+    for i, planner in enumerate(planners):
+        planner.sense(now.position[i], int(now.heading[i]), casts.voxels[i], casts.values[i],
+                      int(casts.seen[i].sum()), blocked=bool(blocked[i]))
+        np.testing.assert_array_equal(planner.map.grid, now.occupancy[i],
+                                      err_msg=f"round {t} robot {i}: maps differ")
+        assert planner.budget_left == pytest.approx(float(now.budget_left[i]), abs=1e-6)
+    outbox = [planner.message() for planner in planners]
+    for i, j in zip(*np.nonzero(jx.contacts(now))):
+        planners[i].receive(outbox[j])
+
+
+def check_round(sim, now, o, planner, d, i, t, seed, pooled):
+    """Every per-round comparison for robot i, whose runtime just decided d."""
+    spec, where = sim.spec, f"seed {seed} round {t} robot {i}"
+    q, heading, budget_left = now.position[i], int(now.heading[i]), now.budget_left[i]
+    others = now.position[sim.jax.contacts(now)[i]]  # the robots it heard this round
+    env_c = robot(now.candidates, i)
+    # Rules: the runtime's own set and the env's set, by one independent checker.
+    kept_ours = check_rules(d.candidates, q, heading, budget_left, now.occupancy[i], others,
+                            spec, f"{where} (runtime)")
+    kept_env = check_rules(env_c, q, heading, budget_left, now.occupancy[i], others, spec,
+                           f"{where} (env)")
+    # The layout: the runtime's builder on the env's set gives the env's observation.
+    check_column_meaning(o.features[i], o.robot_state[i], env_c, q, heading, budget_left,
+                         now.budget_initial, t, spec)
+    features, robot_state = planner.observe(env_c)
+    np.testing.assert_allclose(features, o.features[i], atol=1e-5, err_msg=where)
+    np.testing.assert_allclose(robot_state, o.robot_state[i], atol=1e-6, err_msg=where)
+    # Feeding: same GP contents, hence the same GP columns at the runtime's own poses.
+    utility_gp, comm_gp = robot(now.utility_gp, i), robot(now.comm_gp, i)
+    check_gps(planner, utility_gp, comm_gp, where)
+    poses = np.concatenate([d.candidates.position,
+                            HEADING_ANGLES[d.candidates.heading][:, None]], 1)
+    for gp_state, mean, std in ((utility_gp, "utility_mean", "utility_std"),
+                                (comm_gp, "comm_mean", "comm_std")):
+        want_mean, want_var = sim.jax.predict(gp_state, poses)
+        np.testing.assert_allclose(d.features[:, COL[mean]], want_mean, atol=1e-5,
+                                   err_msg=f"{where}: {mean}")
+        np.testing.assert_allclose(d.features[:, COL[std]], np.sqrt(want_var), atol=1e-5,
+                                   err_msg=f"{where}: {std}")
+    pooled["kept"].append((kept_ours, kept_env))
+    pooled["ours"].append(draws(d.candidates, q))
+    pooled["env"].append(draws(env_c, q))
+
+
+@pytest.fixture(scope="module")
+def pooled(sim):
+    """Flies every seed once (all per-round checks run here) and pools the draws."""
+    pooled = {"kept": [], "ours": [], "env": []}
+    checked = [fly_episode(sim, seed, pooled) for seed in SEEDS]
+    return SimpleNamespace(checked=checked, kept=np.asarray(pooled["kept"]),
+                           ours=np.concatenate(pooled["ours"]),
+                           env=np.concatenate(pooled["env"]))
+
+
+def test_runtime_sampled_episodes_agree_with_the_env_round_by_round(pooled):
+    # Every per-round check passed (in the fixture) on enough decisions of every seed.
+    assert min(pooled.checked) >= CFG.robots.count, pooled.checked
+    assert sum(pooled.checked) >= 0.5 * len(SEEDS) * CFG.robots.count \
+        * CFG.episode.max_steps, pooled.checked
+
+
+def test_runtime_draws_follow_the_env_distribution(pooled):
+    ours, env = pooled.ours, pooled.env
+    assert len(ours) > 200 and len(env) > 200, (len(ours), len(env))
+    for column, name in enumerate(("distance", "elevation", "azimuth")):
+        result = stats.ks_2samp(ours[:, column], env[:, column])
+        print(f"{name}: KS {result.statistic:.3f} (p = {result.pvalue:.3g}, "
+              f"{len(ours)} vs {len(env)} draws)")
+        assert result.pvalue > ALPHA, f"{name} distributions differ: {result}"
+    # Kept slots per round, paired (the same state on both sides).
+    diff = pooled.kept[:, 0] - pooled.kept[:, 1]
+    se = diff.std(ddof=1) / np.sqrt(len(diff))
+    print(f"kept slots: runtime {pooled.kept[:, 0].mean():.2f}, env "
+          f"{pooled.kept[:, 1].mean():.2f} (paired difference SE {se:.2f})")
+    assert abs(diff.mean()) <= max(4 * se, 0.25)
