@@ -19,7 +19,7 @@ train: $(STAMP)
 	$(BIN)/python train.py --config configs/default.yaml
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -x
+	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile
 
 bench: $(STAMP)
 	for b in sensing gp env runtime; do $(BIN)/python benchmarks/$$b.py || exit 1; done

@@ -36,7 +36,7 @@ from jaxmripp.config import GPConfig  # noqa: E402
 from jaxmripp.sim.geometry import HEADING_ANGLES  # noqa: E402
 
 GPS, CANDIDATES, STEPS, ROUNDS = 1024 * 3, 80, 8, 7
-BLOCK_POINTS = 3  # radio rounds per step for N = 3 robots (env._feed_gps)
+BLOCK_POINTS = 3  # radio rounds per step for N = 3 robots (sim.feeding.feed_gps)
 
 
 def random_poses(rng, *shape):

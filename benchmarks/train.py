@@ -8,8 +8,8 @@ rates are medians over rounds and the ratio is the median of the per-round ratio
 The ratio depends on the network as much as on the environment: the rollout costs the
 policy's time plus the environment's, so a cheaper policy lowers it. `--config
 configs/train_paper.yaml` measures it with the paper's network (width 128, feed-forward
-512), the one design.md's performance model is about and the one the >= 0.75 target is
-judged with (README, "How the ratio target is judged"); the default config's width-64
+512), the network the performance model of docs/design.md budgets for (see
+docs/performance.md, "Rollout against the policy alone"); the default config's width-64
 network is much cheaper. With the update timed it also prints
 `train.env_share_of_iteration`: the environment's share (rollout minus policy) of one
 rollout plus its PPO update, which is what decides whether the environment slows training.

@@ -137,12 +137,14 @@ def ranking():
     return out
 
 
+@pytest.mark.slow  # the ranking compiles four planners over 20 worlds: about 2 minutes
 def test_tree_search_beats_random(ranking):
     diff = ranking["mcts"] - ranking["random"]  # paired: same worlds and start
     t = diff.mean() / (diff.std(ddof=1) / np.sqrt(len(diff)))
     assert t > 2.0, ({k: v.mean() for k, v in ranking.items()}, t)
 
 
+@pytest.mark.slow
 def test_oracle_at_least_greedy(ranking):
     assert ranking["oracle"].mean() >= ranking["greedy"].mean()
     assert ranking["oracle"].mean() >= ranking["mcts"].mean()

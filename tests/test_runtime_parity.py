@@ -9,7 +9,7 @@ same maps, budgets, histories, radio contacts, GPs -- and are compared there.
 
 What must agree exactly or to float32 rounding, every round and robot:
 - the map and budget the runtime keeps equal the env's;
-- both candidate sets obey the written rules of `jaxmripp.spec` and design.md section 1,
+- both candidate sets obey the written rules of `jaxmripp.spec` and docs/design.md section 1,
   checked by an independent implementation here: 4 headings per slot, cost = distance +
   turn cost, kept slots first, padding at the robot, and a pose valid exactly when it is
   inside the world, on the shell (or the robot's own position for a turn), clear of every

@@ -83,7 +83,7 @@ class GPConfig:
     variance: float = 1.0
     noise: float = 0.01
     eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
-    catchup_rounds: int = 1  # peer rounds per step beyond N - 1 (env._feed_gps)
+    catchup_rounds: int = 1  # peer rounds per step beyond N - 1 (sim.feeding.feed_gps)
     shared_utility: bool = False  # one utility GP per environment fed by all robots
 
 

@@ -13,7 +13,7 @@ import numpy as np
 from jaxmripp.config import Config
 from jaxmripp.evaluation.sweep import SweepResult, _num
 
-# Table I of the paper (design.md section 1): N = 3, B = 10, G = 50, 25 worlds x 10 trials.
+# Table I of the paper (docs/design.md section 1): N = 3, B = 10, G = 50, 25 worlds x 10 trials.
 PUBLISHED = [
     ("paper's approach", "inf", "66.00 +- 5.59", "1.58"),
     ("paper's approach", "0.1", "62.16 +- 8.25", "1.58"),

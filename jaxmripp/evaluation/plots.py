@@ -1,6 +1,6 @@
 """Plots of evaluation sweeps: discovery curves, team-size scaling, episode pictures, GIFs.
 
-Inputs are `evaluate.ShapeRun`s (NumPy arrays); nothing here imports JAX.
+Inputs are `cells.ShapeRun`s (NumPy arrays); nothing here imports JAX.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """Candidate actions: the L = 4 K poses a robot may fly to next.
 
-Positions are drawn on a thin spherical shell around the robot (design.md section 1),
+Positions are drawn on a thin spherical shell around the robot (docs/design.md section 1),
 filtered by what the robot itself knows -- its own occupancy map, the robots it can hear
 and its remaining budget -- and compacted into a fixed number of slots, each expanded into
 the four headings. Everything is a pure function of its inputs and an explicit PRNG key,

@@ -15,7 +15,7 @@ never contradicts the world, OCCUPIED never turns FREE and what is behind a wall
 UNKNOWN. A window is seen iff a face of it that is turned to the camera and open to the
 air is in sight (`_windows_seen`), a finer test than the map's.
 
-frustum (the reference's, design.md section 1): every voxel with forward offset
+frustum (the reference's, docs/design.md section 1): every voxel with forward offset
 0 <= f <= depth - 1 and both other offsets within min(depth - 1, floor(1.5 f) + 1) of the
 robot's voxel, clipped to the grid, without occlusion; windows in that set are seen.
 
