@@ -22,7 +22,7 @@ test: $(STAMP)
 	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile
 
 bench: $(STAMP)
-	for b in sensing gp env runtime; do $(BIN)/python benchmarks/$$b.py || exit 1; done
+	for b in sensing gp env runtime safety; do $(BIN)/python benchmarks/$$b.py || exit 1; done
 	$(BIN)/python benchmarks/train.py --envs 256
 	$(BIN)/python benchmarks/train.py --envs 256 --no-update --config configs/train_paper.yaml
 

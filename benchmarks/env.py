@@ -125,9 +125,9 @@ def main() -> None:
         k = jax.random.split(key, n)
         contact = comms.contacts(s.position, d.radio_range)
         return jax.vmap(cands.sample,
-                        in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
+                        in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
             k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
-            p.candidates, d.turn_cost, d.collision_distance, p.size)
+            p.candidates, p.safety.flight, d.turn_cost, d.collision_distance, p.size)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),

@@ -6,8 +6,10 @@ NumPy (25 box buildings, 250 facade windows) and a NumPy stand-in for the camera
 reference's frustum, no occlusion: about 3,000 voxels per view). Per robot and round the
 clock covers everything onboard between "the camera delivered" and "the next pose is
 known": `sense` (map update, budget, history), building its radio message, decoding and
-storing the messages of the robots in range, and `decide` (GP updates, candidate sampling,
-safety filter, features, policy forward pass). The camera itself is not timed. The policy
+storing the messages of the robots in range, `decide` (GP updates, candidate sampling,
+safety filter, features, policy forward pass), and the intent round (its intent message,
+decoding the others' and `resolve`). Robots start on their take-off pads and the first
+round senses all four headings (the take-off scan). The camera itself is not timed. The policy
 has random weights of the default shape (the cost does not depend on their values).
 
 Threads are pinned to one before NumPy loads; jax is never imported (checked at the end).
@@ -37,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
 from jaxmripp.runtime import NumpyPolicy, OnboardPlanner  # noqa: E402
 from jaxmripp.runtime import weights as fmt  # noqa: E402
-from jaxmripp.demo import fly  # noqa: E402  (imports jax only inside main)
+from jaxmripp.demo import fly, pads  # noqa: E402  (imports jax only inside main)
 from jaxmripp.runtime.mapping import HEADING_VECTORS  # noqa: E402
 
 N, BUDGET, MIN_DECISIONS, WARMUP_EPISODES = 3, 10.0, 600, 1
@@ -118,12 +120,17 @@ def episode(spec, policy, seed: int, mode: str):
     steps = max(spec.max_steps, int(np.ceil(per_robot / spec.shell[0])) + 4)
     planners = [OnboardPlanner(spec, i, per_robot, team_size=N, policy=policy, mode=mode,
                                max_steps=steps, seed=seed * 100 + i) for i in range(N)]
-    position = np.tile(np.asarray(spec.start, np.float32), (N, 1))
+    position = pads(spec.start, N, Config().robots.pad_spacing)
     heading = np.full(N, spec.start_heading)
     blocked = np.zeros(N, bool)
     seconds, sizes = [], []
-    for _ in range(steps + 1):
+    for step in range(steps + 1):
         casts = [city.cast(position[i], heading[i]) for i in range(N)]  # the camera: untimed
+        if step == 0 and spec.takeoff_scan:  # the take-off scan sees all four headings
+            for i in range(N):
+                extra = [city.cast(position[i], (heading[i] + t) % 4) for t in (1, 2, 3)]
+                casts[i] = (np.concatenate([c[0] for c in extra] + [casts[i][0]]),
+                            np.concatenate([c[1] for c in extra] + [casts[i][1]]), casts[i][2])
         spent = np.zeros(N)
         outbox = []
         for i, planner in enumerate(planners):
@@ -139,7 +146,19 @@ def episode(spec, policy, seed: int, mode: str):
             for j in range(N):
                 if j != i and gap[i, j] <= spec.radio_range:
                     planner.receive(outbox[j])
-            decisions.append(planner.decide())
+            planner.decide()
+            spent[i] += time.perf_counter() - start
+        intents = []
+        for i, planner in enumerate(planners):
+            start = time.perf_counter()
+            intents.append(planner.intent_message())
+            spent[i] += time.perf_counter() - start
+        for i, planner in enumerate(planners):
+            start = time.perf_counter()
+            for j in range(N):
+                if j != i and gap[i, j] <= spec.radio_range:
+                    planner.receive_intent(intents[j])
+            decisions.append(planner.resolve())
             spent[i] += time.perf_counter() - start
         if all(d.hover for d in decisions):
             break

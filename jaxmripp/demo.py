@@ -4,11 +4,14 @@
     python -m jaxmripp.demo --export runs/x/export  # the exported policy
 
 The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
-`jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. Each round every
-robot senses, broadcasts its message to the robots within radio range (JSON bytes, as on
-a real radio), reads theirs and decides; the demo then flies each robot along a straight
-line, stopping before a building (as the env does), and prints the progress. It ends when
-every robot hovers or after the episode's step limit.
+`jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. The robots start on
+their take-off pads (`jaxmripp.spec.flight`) and, with `safety.takeoff_scan`, first sense
+at all four headings. Each round every robot senses, broadcasts its message to the robots
+within radio range (JSON bytes, as on a real radio), reads theirs and decides, then
+broadcasts its intent, reads theirs and resolves (a lower-priority robot whose flight
+would come within d_c of another's holds); the demo then flies each robot along its line
+of flight, stopping before a building (the traversal rule, as the env does), and prints
+the progress. It ends when every robot hovers or after the episode's step limit.
 """
 
 from __future__ import annotations
@@ -23,20 +26,37 @@ from pathlib import Path
 import numpy as np
 
 from jaxmripp.runtime import weights as fmt
-from jaxmripp.runtime.mapping import segment_voxels
+from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import OnboardPlanner
-from jaxmripp.spec.grid import HEADING_NAMES
+from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
 
 
 def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell_hi: float):
-    """jaxmripp.sim.env._fly in NumPy: (stop position, blocked)."""
-    points, voxels = segment_voxels(start, end[None], size, shell_hi)
-    points, voxel = points[0], voxels[0]
-    hit = voxel[:, 2] < height[voxel[:, 0], voxel[:, 1]]
-    if not hit.any():
-        return end, False
-    first = int(np.argmax(hit))
-    return (start if first == 0 else points[first - 1]), True
+    """The truth a flight meets (`jaxmripp.sim.geometry.fly_until` in NumPy): start -> end
+    until the first traversed voxel inside a building (voxel z below the column's height),
+    stopping midway through the last free piece. Returns (stop position, blocked)."""
+    g = np.arange(size)
+    solid = (g[None, None, :] < height[:, :, None]).reshape(-1)
+    stop, hit, _ = fly_until(start, end, solid, size, shell_hi)
+    return stop, hit
+
+
+def pads(start, count: int, spacing: float) -> np.ndarray:
+    """Take-off pads (`jaxmripp.spec.flight`): start + spacing (i mod m, 0, i div m),
+    m = ceil(sqrt(N))."""
+    side = math.ceil(math.sqrt(count))
+    i = np.arange(count)
+    offset = np.stack([i % side, np.zeros_like(i), i // side], axis=-1).astype(np.float32)
+    return (np.asarray(start, np.float32) + np.float32(spacing) * offset).astype(np.float32)
+
+
+def exchange(outbox: list, position: np.ndarray, radio_range: float, deliver) -> None:
+    """Delivers every robot's broadcast to the robots within radio range."""
+    gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
+    for i in range(len(outbox)):
+        for j, data in enumerate(outbox):
+            if j != i and gap[i, j] <= radio_range:
+                deliver(i, data)
 
 
 def main(argv: list[str] | None = None) -> float:
@@ -69,8 +89,11 @@ def main(argv: list[str] | None = None) -> float:
     if args.export is not None:
         exported = fmt.load(args.export)
         spec, policy = exported.spec, exported.policy
+        spacing = exported.header["config"]["robots"].get("pad_spacing",
+                                                          cfg.robots.pad_spacing)
     else:
         spec, policy = fmt.RuntimeSpec.from_header(fmt.jsonable(exportmod.header(cfg))), None
+        spacing = cfg.robots.pad_spacing
     size = args.size or spec.size
     if size != spec.size:
         spec = dataclasses.replace(spec, size=size)
@@ -90,7 +113,7 @@ def main(argv: list[str] | None = None) -> float:
     planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
                                lam=lam, max_steps=steps, seed=args.seed * 1000 + i)
                 for i in range(n)]
-    position = np.tile(np.asarray(spec.start, np.float32), (n, 1))
+    position = pads(spec.start, n, spacing)
     heading = np.full(n, spec.start_heading, np.int32)
     blocked = np.zeros(n, bool)
     found = np.zeros(valid.shape, bool)
@@ -100,20 +123,25 @@ def main(argv: list[str] | None = None) -> float:
               f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")
     decide_seconds = []
     for step in range(steps + 1):
-        seen = cast(world, position, heading, cfg.sensor, size)
-        voxels, values, seen = (np.asarray(x) for x in (seen.voxels, seen.values, seen.seen))
-        found |= seen.any(axis=0)
+        # The take-off scan: the first sense sees the other three headings as well.
+        turns = range(N_HEADINGS) if step == 0 and spec.takeoff_scan else (0,)
+        casts = [cast(world, position, (heading + turn) % N_HEADINGS, cfg.sensor, size)
+                 for turn in reversed(turns)]  # the start heading last, as the env
+        voxels = np.concatenate([np.asarray(c.voxels) for c in casts], axis=1)
+        values = np.concatenate([np.asarray(c.values) for c in casts], axis=1)
+        seen = np.asarray(casts[-1].seen)
+        found |= np.any([np.asarray(c.seen).any(axis=0) for c in casts], axis=0)
         start = time.perf_counter()
         for i, planner in enumerate(planners):
             planner.sense(position[i], int(heading[i]), voxels[i], values[i],
                           int(seen[i].sum()), blocked=bool(blocked[i]))
-        outbox = [planner.message() for planner in planners]
-        gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
-        for i, planner in enumerate(planners):
-            for j in range(n):
-                if j != i and gap[i, j] <= spec.radio_range:
-                    planner.receive(outbox[j])
-        decisions = [planner.decide() for planner in planners]
+        exchange([planner.message() for planner in planners], position, spec.radio_range,
+                 lambda i, data: planners[i].receive(data))
+        for planner in planners:
+            planner.decide()
+        exchange([planner.intent_message() for planner in planners], position,
+                 spec.radio_range, lambda i, data: planners[i].receive_intent(data))
+        decisions = [planner.resolve() for planner in planners]
         decide_seconds.append((time.perf_counter() - start) / n)
         percent = 100.0 * found.sum() / max(valid.sum(), 1)
         if not args.quiet:

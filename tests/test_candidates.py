@@ -21,9 +21,11 @@ K, L = CAND.positions, CAND.count
 HERE = np.array([0.5, 0.5, 0.5], np.float32)
 H0 = 1  # current heading
 
-sample = jax.jit(
-    functools.partial(candidates.sample, cand=CAND, turn_cost=TURN, collision_distance=DC, size=G)
-)
+sample = jax.jit(functools.partial(candidates.sample, cand=CAND, flight_mode="known_free",
+                                   turn_cost=TURN, collision_distance=DC, size=G))
+sample_optimistic = jax.jit(functools.partial(
+    candidates.sample, cand=CAND, flight_mode="optimistic", turn_cost=TURN,
+    collision_distance=DC, size=G))
 
 
 def free_map():
@@ -37,10 +39,11 @@ def alone(n=3):
     return jnp.asarray(others), jnp.zeros((n,), bool)
 
 
-def draw(seed=0, position=HERE, heading=H0, budget=10.0, occupancy=None, others=None, known=None):
+def draw(seed=0, position=HERE, heading=H0, budget=10.0, occupancy=None, others=None, known=None,
+         sampler=sample):
     if others is None:
         others, known = alone()
-    return sample(
+    return sampler(
         jax.random.key(seed),
         jnp.asarray(position, jnp.float32),
         jnp.int32(heading),
@@ -127,18 +130,20 @@ def test_wall_in_own_map_blocks_candidates_behind_it():
         for end in p:
             assert _occupied_runs(HERE, end, occ) == 0.0
 
-    # The same wall, merely unknown to the robot, blocks nothing.
+    # The same wall merely unknown to the robot: flights only go through known-free space,
+    # so it blocks as well; only the unsafe reference (`optimistic`) flies through it.
     occ[wall_x] = geometry.UNKNOWN
     behind = 0
     for seed in range(4):
         c = as_np(draw(seed, occupancy=jnp.asarray(occ)))
+        assert np.all(c.position[c.valid][:, 0] < wall_x / G)
+        c = as_np(draw(seed, occupancy=jnp.asarray(occ), sampler=sample_optimistic))
         behind += np.sum(c.position[c.valid][:, 0] > (wall_x + 1) / G)
     assert behind > 0
 
 
 def test_scattered_obstacles_never_crossed_by_a_valid_path():
-    # Half-voxel stepping may clip an obstacle's corner, but never by more than the
-    # spacing between samples (< half a voxel): that is the documented guarantee.
+    # The exact traversal: no valid flight touches an occupied voxel at all.
     rng = np.random.default_rng(0)
     occ = np.zeros((G, G, G), np.int8)
     for corner in rng.integers(15, 34, size=(60, 3)):
@@ -149,7 +154,7 @@ def test_scattered_obstacles_never_crossed_by_a_valid_path():
     for seed in range(4):
         c = as_np(draw(seed, occupancy=jnp.asarray(occ)))
         for end in c.position[c.valid]:
-            assert _occupied_runs(HERE, end, occ) < 0.5 / G
+            assert _occupied_runs(HERE, end, occ) == 0.0
         free = as_np(draw(seed))
         changed += not np.array_equal(free.position, c.position)
     assert changed, "the obstacles should have rejected some draws"
@@ -161,7 +166,8 @@ def test_known_robots_are_kept_at_distance_unknown_ones_ignored():
     others = jnp.asarray(np.stack([HERE, near, far_side]))
     dc = 0.1
     sample_dc = jax.jit(functools.partial(
-        candidates.sample, cand=CAND, turn_cost=TURN, collision_distance=dc, size=G))
+        candidates.sample, cand=CAND, flight_mode="known_free", turn_cost=TURN,
+        collision_distance=dc, size=G))
 
     def run(seed, known):
         return as_np(sample_dc(
@@ -255,7 +261,7 @@ def test_traced_once():
     @chex.assert_max_traces(n=1)
     def traced(key, position, heading, budget, occupancy, others, known, turn_cost, dc):
         return candidates.sample(key, position, heading, budget, occupancy, others, known,
-                                 CAND, turn_cost, dc, G)
+                                 CAND, "known_free", turn_cost, dc, G)
 
     others, known = alone()
     for seed, budget, heading, turn, dc in [(0, 10.0, 1, TURN, DC), (1, 0.3, 2, 0.1, 0.02),

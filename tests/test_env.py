@@ -23,7 +23,7 @@ import pytest
 
 from jaxmripp.evaluation import baselines
 from jaxmripp import config
-from jaxmripp.sim import episode, feeding, geometry, gp, sensing
+from jaxmripp.sim import episode, feeding, flight, geometry, gp, sensing
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim import env as envmod
 from jaxmripp.sim.params import DynamicParams, EnvParams, StaticRadio
@@ -304,8 +304,9 @@ def test_no_robot_ever_ends_inside_a_building(episodes):
     e = np.arange(len(height))[:, None, None]
     inside = voxels[..., 2] < height[e, voxels[..., 0], voxels[..., 1]]
     assert not inside.any()
-    # The episodes did bump into buildings, so stopping short was exercised.
-    assert r.obstacle_collisions.sum() > 0
+    # Flights go through known-free space only (jaxmripp.spec.flight): no robot ever
+    # entered a building, and none was cut short.
+    assert r.obstacle_collisions.sum() == 0 and r.blocked.sum() == 0
 
 
 def test_discovered_count_is_monotone_and_bounded(episodes, rollout):
@@ -461,7 +462,11 @@ def test_tiny_scene_rewards_by_hand(fns, rollout, window_poses):
     target_pos = np.stack([pos[0], pos[0], pos[other]])
     target_head = np.array([head[0], head[0], head[other]])
     scene = teleport(state, target_pos, (target_head + 2) % 4, target_head)
-    _, after, reward, _, info = fns.p0.step(jax.random.key(1), scene, jnp.zeros((N,), jnp.int32))
+    # Two robots at one pose break the robot rules (0 and 1 would hold each other); a
+    # negative d_c switches them off for this reward arithmetic.
+    unsafe = D0.with_values(collision_distance=-1.0)
+    _, after, reward, _, info = fns.traced.step(jax.random.key(1), scene,
+                                                jnp.zeros((N,), jnp.int32), unsafe)
     before, after, info = to_np(scene), to_np(after), to_np(info)
 
     # r_u: windows nobody had found, split evenly among the robots finding them this step.
@@ -490,12 +495,13 @@ def test_tiny_scene_rewards_by_hand(fns, rollout, window_poses):
 
 
 # ---------------------------------------------------------------------------------------
-# Robot collisions: a move ending within d_c of another robot
+# Robot collisions: closest approach of the actual flights, once per pair and step
 
 
 def place(state, starts, targets, done=(False,) * N):
     """Robots at `starts` in an empty world; candidate 0 flies each to its target, same
-    heading (a real move: position changes, no turn)."""
+    heading (a real move: position changes, no turn). The scene bypasses the candidate
+    rules, so the counting and the hold rule are seen alone."""
     starts, targets = jnp.asarray(starts, jnp.float32), jnp.asarray(targets, jnp.float32)
     c = state.candidates
     candidates = c.replace(
@@ -504,38 +510,54 @@ def place(state, starts, targets, done=(False,) * N):
         valid=c.valid.at[:, 0].set(True))
     world = state.world.replace(height=jnp.zeros_like(state.world.height))
     return state.replace(world=world, position=starts, candidates=candidates,
-                         done=jnp.asarray(done))
+                         done=jnp.asarray(done), budget_left=jnp.full((N,), 2.0, jnp.float32))
 
 
-def test_robot_collisions_count_moves_ending_within_d_c(fns, rollout):
-    """Hand-worked end points; the count is per moving robot and step, from end-point
-    separations only (paths that cross do not count), and d_c is the traced value."""
+def test_robot_collisions_count_pairs_by_closest_approach(fns, rollout):
+    """Hand-worked flights: each pair counts once per step when the closest approach of
+    the two flights (one common speed) is below d_c, in range or out of range of the
+    radio; in range, the lower-priority robot of a conflicting pair holds."""
     _, state, *_ = rollout[0]
     actions = jnp.zeros((N,), jnp.int32)
+    deaf = D0.with_values(radio_range=0.01)  # nobody hears anybody: no holds
 
-    def collisions(scene, dyn=D0):
+    def counts(scene, dyn=D0):
         _, after, *_ = fns.traced.step(jax.random.key(0), scene, actions, dyn)
-        np.testing.assert_array_equal(after.metrics.obstacle_collisions,
-                                      scene.metrics.obstacle_collisions)
-        return (np.asarray(after.metrics.robot_collisions)
-                - np.asarray(scene.metrics.robot_collisions)).tolist(), after
+        m, m0 = after.metrics, scene.metrics
+        return (int(m.robot_collisions_in_range - m0.robot_collisions_in_range),
+                int(m.robot_collisions_out_of_range - m0.robot_collisions_out_of_range),
+                np.asarray(m.held - m0.held).tolist()), after
 
-    # 0 and 1 fly towards each other and end 0.03 apart; 2 ends 0.06 from 0, 0.067 from 1.
-    ends = [[0.5, 0.5, 0.5], [0.53, 0.5, 0.5], [0.5, 0.44, 0.5]]
-    meet = place(state, [[0.3, 0.5, 0.5], [0.7, 0.5, 0.5], [0.5, 0.25, 0.5]], ends)
-    counts, after = collisions(meet)  # d_c = 0.05
-    np.testing.assert_allclose(after.position, ends, atol=1e-6)
-    assert counts == [1, 1, 0]
-    assert collisions(meet, D0.with_values(collision_distance=0.065))[0] == [1, 1, 1]
-    assert collisions(meet, D0.with_values(collision_distance=0.02))[0] == [0, 0, 0]
-    # 0 and 1 swap places: their paths cross, their end points are 0.2 apart.
-    cross = place(state, [[0.4, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.2, 0.5]],
-                  [[0.6, 0.5, 0.5], [0.4, 0.5, 0.5], [0.5, 0.3, 0.5]])
-    assert collisions(cross)[0] == [0, 0, 0]
-    # 2 is done and stays put: 0 ends 0.02 from it and counts; 2 did not move and does not.
-    idle = place(state, [[0.3, 0.5, 0.5], [0.7, 0.5, 0.5], [0.5, 0.52, 0.5]],
-                 [[0.5, 0.5, 0.5], [0.85, 0.5, 0.5], [0.5, 0.52, 0.5]], done=(False, False, True))
-    assert collisions(idle)[0] == [1, 0, 0]
+    # 0 and 1 end 0.03 apart; 2 comes within 0.061 of 0 and 0.067 of 1 on the way.
+    meet = place(state, [[0.3, 0.5, 0.5], [0.7, 0.5, 0.5], [0.5, 0.25, 0.5]],
+                 [[0.5, 0.5, 0.5], [0.53, 0.5, 0.5], [0.5, 0.44, 0.5]])
+    assert counts(meet, deaf)[0] == (0, 1, [0, 0, 0])
+    assert counts(meet, deaf.with_values(collision_distance=0.065))[0] == (0, 2, [0, 0, 0])
+    assert counts(meet, deaf.with_values(collision_distance=0.02))[0] == (0, 0, [0, 0, 0])
+    # 0 and 1 swap places: their end points are 0.2 apart, they meet halfway: one pair.
+    swap = place(state, [[0.4, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.2, 0.5]],
+                 [[0.6, 0.5, 0.5], [0.4, 0.5, 0.5], [0.5, 0.3, 0.5]])
+    assert counts(swap, deaf)[0] == (0, 1, [0, 0, 0])
+    # 0 and 1 cross at right angles at the same moment (each flight keeps 0.1 from the
+    # other's start, so both are legal candidates). Out of range they collide; in range
+    # robot 1 holds and nobody collides.
+    cross = place(state, [[0.4, 0.5, 0.5], [0.5, 0.4, 0.5], [0.8, 0.8, 0.8]],
+                  [[0.6, 0.5, 0.5], [0.5, 0.6, 0.5], [0.8, 0.8, 0.6]])
+    assert counts(cross, deaf)[0] == (0, 1, [0, 0, 0])
+    (in_range, out_of_range, held), after = counts(cross)
+    assert (in_range, out_of_range, held) == (0, 0, [0, 1, 0])
+    np.testing.assert_allclose(after.position[1], [0.5, 0.4, 0.5])  # stayed, charged nothing
+    assert float(after.budget_left[1]) == 2.0
+    # 2 is done and hovers on 0's line: flying through it counts (in range: the scene
+    # bypasses the candidate rule that would have masked the flight).
+    through = place(state, [[0.3, 0.5, 0.5], [0.7, 0.8, 0.5], [0.5, 0.5, 0.5]],
+                    [[0.7, 0.5, 0.5], [0.85, 0.8, 0.5], [0.5, 0.5, 0.5]],
+                    done=(False, False, True))
+    assert counts(through, deaf)[0] == (0, 1, [0, 0, 0])
+    assert counts(through)[0] == (1, 0, [0, 0, 0])
+    assert not bool(flight.clear_of_robots(through.position[0], through.candidates.position[0, :1],
+                                           through.position, jnp.asarray([False, True, True]),
+                                           0.05)[0])
 
 
 # ---------------------------------------------------------------------------------------
@@ -619,6 +641,7 @@ def test_greedy_follows_its_score_not_chance():
         np.testing.assert_array_equal(np.asarray(actions), expected)
 
 
+@pytest.mark.slow
 def test_greedy_beats_random_on_average_over_20_worlds_in_the_paper_world():
     """In the paper's world (`configs/paper.yaml`: windows inside footprints, a frustum
     without occlusion, one shared utility GP), where a pose sees many windows, the utility

@@ -13,7 +13,8 @@ from jaxmripp.sim.params import DynamicParams, EnvParams, stack
 
 ROOT = Path(__file__).resolve().parents[1]
 CFG = config.load(ROOT / "configs" / "smoke.yaml", [
-    "radio.range=.inf", "radio.collision_distance=0.07", "robots.budget=[3.0, 5.0]",
+    "radio.range=.inf", "radio.collision_distance=0.07", "robots.pad_spacing=0.08",
+    "robots.budget=[3.0, 5.0]",
     "robots.turn_cost=0.03", "robots.start=[0.1, 0.2, 0.3]", "reward.alpha=7.5",
     "reward.beta=0.25", "reward.gamma=1.5", "reward.utility_norm=10.0"])
 
@@ -21,7 +22,8 @@ CFG = config.load(ROOT / "configs" / "smoke.yaml", [
 def test_dynamic_values_come_from_the_config_as_float32():
     d = DynamicParams.from_config(CFG)
     expected = dict(radio_range=math.inf, collision_distance=0.07, budget=[3.0, 5.0],
-                    turn_cost=0.03, start=[0.1, 0.2, 0.3], alpha=7.5, beta=0.25, gamma=1.5,
+                    turn_cost=0.03, start=[0.1, 0.2, 0.3], pad_spacing=0.08, alpha=7.5,
+                    beta=0.25, gamma=1.5,
                     utility_norm=10.0)
     for name, value in expected.items():
         leaf = getattr(d, name)
@@ -36,7 +38,7 @@ def test_static_params_hold_no_dynamic_value():
     assert (p.n_robots, p.robots.start_heading, p.radio.relay) == (2, 1, False)
     assert p.max_steps == CFG.episode.max_steps and p.size == CFG.world.size
     for path in ("radio.range", "radio.collision_distance", "robots.budget",
-                 "robots.turn_cost", "robots.start", "reward"):
+                 "robots.turn_cost", "robots.start", "robots.pad_spacing", "reward"):
         obj = p
         with pytest.raises(AttributeError):
             for part in path.split("."):

@@ -1,8 +1,9 @@
 """The NumPy onboard runtime: export format, ports of the GP / candidates, radio messages,
-safety filter and bad input. Whole-episode parity with the JAX env lives in
-tests/test_runtime_episode.py (env candidates) and tests/test_runtime_parity.py (the
-runtime's own), the NumPy-only guarantee in tests/test_runtime_numpy_only.py and the
-exporter in tests/test_export.py."""
+safety filter and bad input. The safe-flight rules (traversal, closest approach, take-off
+scan, intents and holds, protocol 2) are in tests/test_runtime_flight.py; whole-episode
+parity with the JAX env lives in tests/test_runtime_episode.py (env candidates) and
+tests/test_runtime_parity.py (the runtime's own), the NumPy-only guarantee in
+tests/test_runtime_numpy_only.py and the exporter in tests/test_export.py."""
 
 from __future__ import annotations
 
@@ -23,9 +24,10 @@ from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError,
                               OnboardPlanner, PlannerStateError, ProtocolVersionError,
                               RuntimeSpec, WeightsFormatError)
 from jaxmripp.runtime import candidates as np_candidates
-from jaxmripp.runtime import messages, weights
+from jaxmripp.runtime import flight, messages, weights
 from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
-from jaxmripp.runtime.mapping import OCCUPIED, OccupancyMap
+from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
+from jaxmripp.spec.flight import SCAN_TURNS
 
 REPO = Path(__file__).resolve().parents[1]
 CFG = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3"])
@@ -58,8 +60,10 @@ def exported(tmp_path_factory):
 
 
 def sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=0):
-    planner.sense(np.asarray(position, np.float32), heading, np.zeros(0, np.int64),
-                  np.zeros(0, np.int8), n_seen)
+    """Senses a world seen to be FREE everywhere (flights need known-free voxels)."""
+    g = planner.spec.size
+    planner.sense(np.asarray(position, np.float32), heading, np.arange(g ** 3),
+                  np.zeros(g ** 3, np.int8), n_seen)
 
 
 # ---------------------------------------------------------------------------------------
@@ -95,6 +99,8 @@ def test_layout_and_header_match_the_written_layout(exported):
     assert c["candidates"]["shell"] == list(CFG.candidates.shell)
     assert c["gp"]["capacity"] == CFG.gp.capacity and c["reward"]["utility_norm"] == 16.0
     assert c["robots"]["turn_cost"] == CFG.robots.turn_cost
+    assert c["safety"] == {"flight": CFG.safety.flight, "takeoff_scan": CFG.safety.takeoff_scan,
+                           "intents": CFG.safety.intents, "priority": CFG.safety.priority}
     spec = spec_of()
     assert (spec.size, spec.n_candidates, spec.gp.capacity) == (30, CFG.candidates.count, 16)
 
@@ -204,19 +210,23 @@ def test_candidates_match_jax_sampler_given_the_same_uniforms():
     spec = spec_of()
     cand, robots = CFG.candidates, CFG.robots
     g = spec.size
-    occupancy = np.full((g, g, g), 1, np.int8)
+    occupancy = np.full((g, g, g), FREE, np.int8)
     occupancy[14:17, 10:20, :12] = OCCUPIED  # a wall next to the robot
-    others = np.float32([[0.5, 0.5, 0.3], [0.45, 0.36, 0.3], [0.9, 0.9, 0.9]])
-    known = np.array([False, True, False])  # row 0 is the robot itself
-    sample = jax.jit(jax_candidates.sample, static_argnums=(7, 10))
+    occupancy[18:22, 18:22, 6:12] = UNKNOWN  # and a patch not seen yet
+    # Robot 1 sits where some flights pass it; row 0 is the robot itself.
+    others = np.float32([[0.5, 0.5, 0.3], [0.45, 0.4, 0.38], [0.9, 0.9, 0.9]])
+    known = np.array([False, True, False])
+    sample = jax.jit(jax_candidates.sample, static_argnums=(7, 8, 11))
     our_map = OccupancyMap(g)
     our_map.codes[:] = occupancy.reshape(-1)
+    rejected = []
     for seed in range(6):
         key = jax.random.key(seed)
         position, heading, budget = np.float32([0.5, 0.5, 0.3]), seed % 4, 0.2 + 0.05 * seed
         want = jax.tree.map(np.asarray, sample(
             key, position, jnp.int32(heading), jnp.float32(budget), occupancy, others, known,
-            cand, jnp.float32(robots.turn_cost), jnp.float32(spec.collision_distance), g))
+            cand, spec.flight, jnp.float32(robots.turn_cost),
+            jnp.float32(spec.collision_distance), g))
         uniforms = np.asarray(jax.random.uniform(key, (cand.positions * cand.oversample - 1, 3)))
         got = np_candidates.sample(uniforms, position, heading, np.float32(budget), our_map,
                                    others[known], spec)
@@ -224,81 +234,49 @@ def test_candidates_match_jax_sampler_given_the_same_uniforms():
         np.testing.assert_array_equal(got.heading, want.heading)
         np.testing.assert_allclose(got.position, want.position, atol=1e-6)
         np.testing.assert_allclose(got.cost, want.cost, atol=1e-6)
+        rejected.append(int((~got.valid).sum()))
+    assert max(rejected) > 0  # the rules did reject something
 
 
 # ---------------------------------------------------------------------------------------
 # Map and safety filter
 
 
-def _slab_hits(start, end, codes, size):
-    """Independent reference: does the segment enter the interior of an occupied voxel?"""
-    s, e = np.asarray(start, np.float64) * size, np.asarray(end, np.float64) * size
-    lo = np.maximum(np.floor(np.minimum(s, e)) - 1, 0).astype(int)
-    hi = np.minimum(np.floor(np.maximum(s, e)) + 1, size - 1).astype(int)
-    grid = codes.reshape(size, size, size)
-    d = e - s
-    for v in np.argwhere(grid[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1, lo[2]:hi[2] + 1] == OCCUPIED):
-        v = v + lo
-        t0, t1 = 0.0, 1.0
-        for a in range(3):
-            if d[a] == 0:
-                if not v[a] < s[a] < v[a] + 1:
-                    t0, t1 = 1.0, 0.0
-                continue
-            ta, tb = sorted(((v[a] - s[a]) / d[a], (v[a] + 1 - s[a]) / d[a]))
-            t0, t1 = max(t0, ta), min(t1, tb)
-        if t1 - t0 > 1e-9:
-            return True
-    return False
-
-
-def test_exact_traversal_agrees_with_a_slab_test_and_sees_corners_sampling_misses():
-    size = 12
-    grid = OccupancyMap(size)
-    rng = np.random.default_rng(3)
-    grid.codes[rng.random(size ** 3) < 0.03] = OCCUPIED
-    start = np.float32([0.51, 0.47, 0.52])
-    grid.codes[np.ravel_multi_index((6, 5, 6), (size,) * 3)] = 0  # the robot's own voxel
-    ends = rng.random((300, 3)).astype(np.float32) * 0.6 + 0.2
-    exact = grid.exact_clear(start, ends)
-    reference = np.array([not _slab_hits(start, e, grid.codes, size) for e in ends])
-    np.testing.assert_array_equal(exact, reference)
-
-    # A segment clipping the corner of one occupied voxel: half-voxel samples step over it.
-    corner = OccupancyMap(size)
-    corner.codes[np.ravel_multi_index((6, 6, 6), (size,) * 3)] = OCCUPIED
-    # x + y = 13.9: inside (6, 6, 6) for 6.9 < x < 7, a chord of 0.14 voxel; the 7
-    # samples of the candidate rule land at x = 6.87 (y = 7.03) and x = 7.03.
-    start, end = np.float32([6.4, 7.5, 6.5]) / size, np.float32([7.5, 6.4, 6.5]) / size
-    assert corner.sampled_clear(start, end[None], max_length=0.21)[0]
-    assert not corner.exact_clear(start, end[None])[0]
-    assert _slab_hits(start, end, corner.codes, size)
-
-
 def test_safety_filter_rejects_occupied_paths_and_close_robots_or_hovers_with_a_reason():
     spec = spec_of()
     planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
     sense_free(planner)
-    # Candidates supplied by the caller: one through a wall, one next to robot 1, one fine.
-    wall = np.ravel_multi_index((17, 15, 15), (spec.size,) * 3)
-    planner.map.codes[wall] = OCCUPIED
+    # Candidates supplied by the caller: one through a wall, one ending next to robot 1, one
+    # ending 0.07 from it but passing 0.04 from it on the way, one through a voxel not
+    # seen yet, one fine.
+    def obstacles():
+        planner.map.grid[17, 15, 15] = OCCUPIED  # a wall
+        planner.map.grid[15, 15, 18] = UNKNOWN  # not seen yet
+
+    obstacles()
     peer = OnboardPlanner(spec, 1, budget=1.0, team_size=3)
     sense_free(peer, position=(0.5, 0.3, 0.5))
     planner.receive(peer.message())
-    offered = Candidates(np.float32([[0.7, 0.5, 0.5], [0.5, 0.31, 0.5], [0.5, 0.5, 0.7]]),
-                         np.int32([0, 3, 1]), None, None)
+    offered = Candidates(np.float32([[0.7, 0.5, 0.5], [0.5, 0.31, 0.5], [0.5, 0.25, 0.55],
+                                     [0.5, 0.5, 0.7], [0.5, 0.7, 0.5]]),
+                         np.int32([0, 3, 3, 1, 1]), None, None)
     d = planner.decide(candidates=offered)
-    np.testing.assert_array_equal(d.safe, [False, False, True])
-    assert d.index == 2 and not d.hover and d.reason == "greedy"
+    np.testing.assert_array_equal(d.safe, [False, False, False, False, True])
+    np.testing.assert_array_equal(d.safe, planner.map.known_free(
+        planner.position, offered.position, 0.3) & flight.clear_of_robots(
+        planner.position, offered.position, peer.position[None], spec.collision_distance))
+    assert d.index == 4 and not d.hover and d.reason == "greedy"
 
     # Nothing safe: it hovers at its pose and says why (it did not fly: stopped at start).
     sense_free(planner)
+    obstacles()
     planner.receive(peer.message())
     d = planner.decide(candidates=Candidates(offered.position[:2], offered.heading[:2], None,
                                              None))
     assert d.hover and d.index == -1
     np.testing.assert_array_equal(d.position, planner.position)
-    assert "1 cross a voxel known occupied" in d.reason and "within d_c" in d.reason
+    assert "1 cross a voxel not known free" in d.reason
+    assert "1 pass within d_c = 0.05 of a robot heard" in d.reason
 
 
 def test_own_sampling_respects_every_rule():
@@ -309,7 +287,9 @@ def test_own_sampling_respects_every_rule():
     sense_free(peer, position=(0.5, 0.65, 0.25))
     planner.receive(peer.message())
     planner.map.grid[15:18, 16:22, :8] = OCCUPIED
+    planner.map.grid[10:13, 10:20, 4:9] = UNKNOWN
     for _ in range(5):
+        planner.receive(peer.message())  # heard again every round
         d = planner.decide()
         assert not d.hover
         c = d.candidates
@@ -317,10 +297,14 @@ def test_own_sampling_respects_every_rule():
         assert ok.any()
         gaps = np.linalg.norm(c.position[ok] - planner.position, axis=-1)
         assert np.all((gaps == 0) | ((gaps >= 0.19 - 1e-6) & (gaps <= 0.21 + 1e-6)))
-        assert np.all(np.linalg.norm(c.position[ok] - peer.position, axis=-1) > 0.05)
+        gap = flight.closest_approach(planner.position, c.position[ok], peer.position,
+                                      peer.position)
+        assert np.all(gap > 0.05)  # the whole flight keeps clear, not only its end
         assert np.all(c.cost[ok] <= planner.budget_left)
-        assert planner.map.exact_clear(planner.position, c.position[ok]).all()
+        assert planner.map.known_free(planner.position, c.position[ok], 0.21).all()
+        assert planner.map.known_free(planner.position, c.position[c.valid], 0.21).all()
         planner._command = None  # decide again from the same pose
+    assert d.candidates.valid.sum() < d.candidates.valid.size  # some draws were rejected
 
 
 def test_budget_exhaustion_hovers():
@@ -340,7 +324,8 @@ def test_sense_charges_distance_and_turns_and_records_history():
     sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=3)
     d = planner.decide()
     planner.sense(d.position, d.heading, np.array([0, 27_000]), np.array([2, 0]), 5)
-    expected = 1.0 - np.linalg.norm(d.position - np.float32([0.5, 0.5, 0.5])) \
+    scan = SCAN_TURNS * spec.turn_cost * spec.takeoff_scan  # charged by the first sense
+    expected = 1.0 - scan - np.linalg.norm(d.position - np.float32([0.5, 0.5, 0.5])) \
         - (spec.turn_cost if d.heading != 1 else 0.0)
     assert planner.budget_left == pytest.approx(expected, abs=1e-6)
     assert planner.map.codes[0] == OCCUPIED  # index G^3 = 27000 means "not observed"
@@ -377,7 +362,8 @@ def test_newer_protocol_and_malformed_messages_are_refused_without_side_effects(
     sense_free(b)
     record = json.loads(a.message())
     newer = dict(record, protocol=messages.PROTOCOL_VERSION + 1)
-    with pytest.raises(ProtocolVersionError, match="protocol 2; this runtime speaks up to 1"):
+    with pytest.raises(ProtocolVersionError, match="protocol 3; this runtime speaks protocol "
+                                                   "2 only"):
         b.receive(json.dumps(newer).encode())
     bad = [b"\x00garbage", json.dumps(dict(record, poses=[[0.1, 0.2, float("nan"), 0.0]])),
            json.dumps(dict(record, sender=7)), json.dumps(dict(record, utilities=[])),

@@ -69,14 +69,16 @@ planners = [rt.OnboardPlanner.load({export!r}, robot_id=i, budget=1.0, team_size
 spec = planners[0].spec
 g = spec.size
 rng = np.random.default_rng(0)
-# A synthetic world: a wall of occupied voxels; the "camera" sees a box around the robot.
+# A synthetic world: a wall of occupied voxels; the "camera" sees a box around the robot
+# reaching past the candidate shell (flights need voxels known to be free).
 truth = np.zeros((g, g, g), np.int8)
 truth[g // 2 + 3, :, : g // 3] = 2
+reach = int(np.ceil(spec.shell[1] * g)) + 1
 
 
 def camera(position):
     centre = np.floor(position * g).astype(int)
-    lo, hi = np.maximum(centre - 2, 0), np.minimum(centre + 3, g)
+    lo, hi = np.maximum(centre - reach, 0), np.minimum(centre + reach + 1, g)
     box = np.stack(np.meshgrid(*(np.arange(a, b) for a, b in zip(lo, hi)), indexing="ij"),
                    axis=-1).reshape(-1, 3)
     return box, truth[box[:, 0], box[:, 1], box[:, 2]]
@@ -99,7 +101,13 @@ for t in range(ROUNDS):
         for j, data in enumerate(outbox):
             if j != i and np.linalg.norm(position[i] - position[j]) <= spec.radio_range:
                 assert p.receive(data).sender == j
-    decisions = [p.decide() for p in planners]
+    chosen = [p.decide() for p in planners]
+    intents = [p.intent_message() for p in planners]
+    for i, p in enumerate(planners):
+        for j, data in enumerate(intents):
+            if j != i and np.linalg.norm(position[i] - position[j]) <= spec.radio_range:
+                assert p.receive_intent(data).sender == j
+    decisions = [p.resolve() for p in planners]
     for i, d in enumerate(decisions):
         assert d.mode == "policy" and np.all(np.isfinite(d.pose)), d
         assert np.all((d.position >= 0) & (d.position <= 1))
@@ -109,8 +117,10 @@ for t in range(ROUNDS):
         else:
             moves += 1
             assert d.safe[d.index] and d.candidates.valid[d.index]
+            assert d is chosen[i]
             position[i], heading[i] = d.position, d.heading
 greedy = planners[0].decide(mode="greedy")  # the other rule needs nothing more
+assert planners[0].resolve() is greedy
 assert moves >= N * (ROUNDS - 1), (moves, hovers)
 assert all(p.budget_left < 1.0 for p in planners)
 assert len(messages.decode(planners[0].message()).poses) >= 2

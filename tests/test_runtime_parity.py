@@ -12,10 +12,14 @@ What must agree exactly or to float32 rounding, every round and robot:
 - both candidate sets obey the written rules of `jaxmripp.spec` and docs/design.md section 1,
   checked by an independent implementation here: 4 headings per slot, cost = distance +
   turn cost, kept slots first, padding at the robot, and a pose valid exactly when it is
-  inside the world, on the shell (or the robot's own position for a turn), clear of every
-  voxel the robot has mapped OCCUPIED at the segment rule's samples
-  (`jaxmripp.spec.grid.segment_samples`), farther than d_c from every robot heard, within
-  the budget, and not the current pose;
+  inside the world, on the shell (or the robot's own position for a turn), known free
+  (every voxel its line of flight traverses, `jaxmripp.spec.grid`, is FREE in the robot's
+  map: an exact interval test per voxel here), its flight keeps more than d_c from every
+  robot heard (`jaxmripp.spec.flight`: a point-to-segment distance here), within the
+  budget, and not the current pose;
+- the first round is the take-off scan (maps of all four headings, four turns charged),
+  and the robots the env holds for a conflicting intent are exactly those whose
+  `resolve` held (the runtime's intents travel along the env's contacts);
 - the observation features the runtime builds for the env's candidate set equal the env's
   observation (so the two implementations of `jaxmripp.spec.layout` agree), and each
   env column means what the layout says (dx is the offset over the shell radius, ...);
@@ -47,8 +51,10 @@ from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
 from jaxmripp.sim import candidates as jax_candidates
 from jaxmripp.sim import comms, env as envmod, gp as jax_gp, sensing
 from jaxmripp.sim.params import DynamicParams
-from jaxmripp.spec.grid import HEADING_ANGLES, N_HEADINGS, OCCUPIED, segment_samples
+from jaxmripp.spec.grid import FREE, HEADING_ANGLES, N_HEADINGS
 from test_runtime import EXPECTED_FEATURES, EXPECTED_ROBOT_STATE, REPO
+from test_runtime_episode import point_to_segment
+from test_runtime_flight import interval_reference
 
 CFG = config.load(REPO / "configs/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
@@ -85,8 +91,9 @@ class JaxSide:
         obs, state, *_ = self._step(key, state, jnp.asarray(actions, jnp.int32))
         return obs, state
 
-    def camera(self, state):
-        return jax.tree.map(np.asarray, self._cast(state.world, state.position, state.heading))
+    def camera(self, state, turn=0):
+        heading = (state.heading + turn) % N_HEADINGS
+        return jax.tree.map(np.asarray, self._cast(state.world, state.position, heading))
 
     def contacts(self, state):
         return np.asarray(comms.contacts(state.position, self.radio_range))
@@ -116,16 +123,15 @@ def feasible(c, q, heading, budget_left, occupancy, others, spec):
     gap = np.linalg.norm(c.position - q, axis=-1)
     inside = np.all((c.position >= 0) & (c.position <= 1), axis=-1)
     on_shell = (gap == 0) | ((gap >= lo - 1e-5) & (gap <= hi + 1e-5))
-    n = segment_samples(g, hi)  # k / n of the way, k = 1..n
-    t = np.arange(1, n + 1, dtype=np.float32)[:, None] / np.float32(n)
-    voxels = np.clip(np.floor((q + t[None] * (c.position - q)[:, None]) * g), 0, g - 1)
-    voxels = voxels.astype(int)
-    clear = np.all(occupancy[voxels[..., 0], voxels[..., 1], voxels[..., 2]] != OCCUPIED,
-                   axis=-1)
-    apart = np.ones(len(c.position), bool)
-    for other in others:
-        apart &= np.sum(np.square(c.position - other), axis=-1) > np.square(
-            np.float32(spec.collision_distance))
+    clear, apart = np.zeros(len(gap), bool), np.zeros(len(gap), bool)
+    for k, target in enumerate(c.position):
+        if k % N_HEADINGS:  # a slot's four poses share one position
+            clear[k], apart[k] = clear[k - 1], apart[k - 1]
+            continue
+        clear[k] = inside[k] and all(occupancy[v] == FREE
+                                     for v in interval_reference(q, target, g))
+        apart[k] = all(point_to_segment(other, q, target) > spec.collision_distance
+                       for other in others)
     current = (gap == 0) & (c.heading == heading)
     return inside & on_shell & clear & apart & (c.cost <= budget_left) & ~current
 
@@ -208,9 +214,9 @@ def fly_episode(sim, seed, pooled):
         now = jax.tree.map(np.asarray, state)  # one transfer per round
         if now.done.all():
             break
-        sense_and_talk(jx, now, planners, blocked, t)
+        contact = sense_and_talk(jx, now, planners, blocked, t)
         o = jax.tree.map(np.asarray, obs)
-        chosen, actions = [], []
+        decisions = []
         for i, planner in enumerate(planners):
             if now.done[i]:
                 # The env retires a robot without candidates; the runtime would keep
@@ -218,31 +224,61 @@ def fly_episode(sim, seed, pooled):
                 planner.feed_gps()
                 check_gps(planner, robot(now.utility_gp, i), robot(now.comm_gp, i),
                           f"seed {seed} round {t} robot {i} (retired)")
-                d = None
+                decisions.append(None)
             else:
-                d = planner.decide()
-                check_round(sim, now, o, planner, d, i, t, seed, pooled)
+                decisions.append(planner.decide())
+                check_round(sim, now, o, planner, decisions[-1], i, t, seed, pooled)
                 checked += 1
-            fly = d is not None and not d.hover
+        held = exchange_intents(planners, decisions, contact)
+        chosen, actions = [], []
+        for i, d in enumerate(decisions):
+            fly = d is not None and not d.hover  # the env applies its own hold rule
             c = d.candidates if d is not None else robot(now.candidates, i)
             chosen.append(Candidates(c.position, c.heading, c.cost, c.valid & fly))
             actions.append(d.index if fly else 0)
         obs, state = jx.step(seed, t, state, chosen, actions)
-        blocked = np.asarray(state.metrics.obstacle_collisions) > now.metrics.obstacle_collisions
+        metrics = jax.tree.map(np.asarray, state.metrics)
+        np.testing.assert_array_equal(metrics.held - now.metrics.held, held,
+                                      err_msg=f"seed {seed} round {t}: the env held others")
+        blocked = metrics.obstacle_collisions > now.metrics.obstacle_collisions
+        assert not blocked.any(), f"seed {seed} round {t}: a flight entered a building"
+        pooled["held"] += int(held.sum())
     return checked
 
 
 def sense_and_talk(jx, now, planners, blocked, t):
-    casts = jx.camera(now)
+    """Senses (round 0: the take-off scan, the env's heading order) and exchanges the first
+    broadcast along the env's contacts; returns the contacts."""
+    turns = (1, 2, 3, 0) if t == 0 and planners[0].spec.takeoff_scan else (0,)
+    casts = [jx.camera(now, turn) for turn in turns]
     for i, planner in enumerate(planners):
-        planner.sense(now.position[i], int(now.heading[i]), casts.voxels[i], casts.values[i],
-                      int(casts.seen[i].sum()), blocked=bool(blocked[i]))
+        planner.sense(now.position[i], int(now.heading[i]),
+                      np.concatenate([c.voxels[i] for c in casts]),
+                      np.concatenate([c.values[i] for c in casts]),
+                      int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]))
         np.testing.assert_array_equal(planner.map.grid, now.occupancy[i],
                                       err_msg=f"round {t} robot {i}: maps differ")
         assert planner.budget_left == pytest.approx(float(now.budget_left[i]), abs=1e-6)
+    contact = jx.contacts(now)
     outbox = [planner.message() for planner in planners]
-    for i, j in zip(*np.nonzero(jx.contacts(now))):
+    for i, j in zip(*np.nonzero(contact)):
         planners[i].receive(outbox[j])
+    return contact
+
+
+def exchange_intents(planners, decisions, contact):
+    """The intent broadcast of the robots that decided, then `resolve`: (N,) bool held."""
+    deciding = [d is not None for d in decisions]
+    intents = [p.intent_message() if ok else None for p, ok in zip(planners, deciding)]
+    for i, j in zip(*np.nonzero(contact)):
+        if deciding[i] and deciding[j]:
+            planners[i].receive_intent(intents[j])
+    held = np.zeros(len(planners), bool)
+    for i, (planner, d) in enumerate(zip(planners, decisions)):
+        if d is not None:
+            resolved = planner.resolve()
+            held[i] = resolved.hover and not d.hover
+    return held
 
 
 def check_round(sim, now, o, planner, d, i, t, seed, pooled):
@@ -282,8 +318,9 @@ def check_round(sim, now, o, planner, d, i, t, seed, pooled):
 @pytest.fixture(scope="module")
 def pooled(sim):
     """Flies every seed once (all per-round checks run here) and pools the draws."""
-    pooled = {"kept": [], "ours": [], "env": []}
+    pooled = {"kept": [], "ours": [], "env": [], "held": 0}
     checked = [fly_episode(sim, seed, pooled) for seed in SEEDS]
+    print(f"{sum(checked)} decisions checked, {pooled['held']} holds")
     return SimpleNamespace(checked=checked, kept=np.asarray(pooled["kept"]),
                            ours=np.concatenate(pooled["ours"]),
                            env=np.concatenate(pooled["env"]))

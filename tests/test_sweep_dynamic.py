@@ -46,8 +46,10 @@ def _same_episodes(run, alone):
     alone = jax.tree.map(np.asarray, alone)
     np.testing.assert_array_equal(run.discovered,
                                   alone.discovered_fraction.astype(np.float64) * 100)
-    for field in ("steps", "robot_collisions", "distance", "contacts"):
+    for field in ("steps", "distance", "contacts"):
         np.testing.assert_array_equal(getattr(run, field), getattr(alone, field), field)
+    for field, count in run.safety.items():
+        np.testing.assert_array_equal(count, getattr(alone, field), field)
     np.testing.assert_array_equal(run.curve_budget, alone.trajectory.budget_used)
 
 

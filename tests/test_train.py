@@ -96,7 +96,7 @@ def _random_observations(key, trainer, batch):
                            global_state=draw(example.global_state))
 
 
-@pytest.mark.parametrize("algo", ["ippo", "mappo"])
+@pytest.mark.parametrize("algo", ["ippo", pytest.param("mappo", marks=pytest.mark.slow)])
 def test_ppo_loss_falls_on_a_fixed_batch(algo):
     cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.algo={algo}"])
     trainer = trainmod.Trainer.build(cfg)

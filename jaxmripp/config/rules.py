@@ -11,6 +11,7 @@ from typing import Any
 
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
+from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
 
 
 def _range(lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False):
@@ -63,12 +64,15 @@ RULES: dict[str, tuple] = {
     "robots.turn_cost": _NONNEG,
     "robots.start": (lambda v: len(v) == 3 and all(0 <= x <= 1 for x in v), "3 numbers in [0, 1]"),
     "robots.start_heading": _range(0, 3),
+    "robots.pad_spacing": _NONNEG,
     "sensor.model": _choice("raycast", "frustum"),
     "sensor.fov_deg": _range(1, 170),
     "sensor.range": _range(0, 1, lo_open=True),
     "sensor.rays_per_voxel": _range(0.5, 8),
     "radio.range": _NONNEG,
     "radio.collision_distance": _NONNEG,
+    "safety.flight": _choice(*FLIGHT_MODES),
+    "safety.priority": _choice(*PRIORITIES),
     "candidates.positions": _range(1, 512),
     "candidates.shell": _pair(_range(0, 1, lo_open=True)),
     "candidates.oversample": _range(1, 32),
@@ -167,6 +171,7 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if r.collision_distance >= r.range:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
+    problems += _pad_checks(cfg)
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))
@@ -182,6 +187,25 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("ppo.minibatches", cfg.ppo.minibatches,
                          f"a divisor of train.envs = {cfg.train.envs}"))
     return problems
+
+
+def _pad_checks(cfg: Config) -> list[tuple[str, Any, str]]:
+    """Take-off pads (jaxmripp.spec.flight) must keep robots apart and inside the world."""
+    n, spacing = cfg.robots.count, cfg.robots.pad_spacing
+    if n == 1:
+        return []
+    if spacing <= cfg.radio.collision_distance:
+        return [("robots.pad_spacing", spacing,
+                 f"more than radio.collision_distance = {cfg.radio.collision_distance} "
+                 f"(robots start on pads that far apart)")]
+    side = math.ceil(math.sqrt(n))
+    x, _, z = cfg.robots.start
+    reach = max(x + spacing * (side - 1), z + spacing * ((n - 1) // side))
+    if reach > 1.0:
+        return [("robots.pad_spacing", spacing,
+                 f"at most {(1.0 - max(x, z)) / (side - 1):.4g} so that {n} pads in a "
+                 f"{side}-wide grid from robots.start fit in the unit cube")]
+    return []
 
 
 def _cross_checks(cfg: Config) -> list[tuple[str, Any, str]]:

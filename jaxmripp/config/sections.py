@@ -47,6 +47,7 @@ class RobotConfig:
     turn_cost: float = 0.05  # charged when the heading changes
     start: tuple[float, float, float] = (0.0, 0.0, 0.0)
     start_heading: int = 1  # index into headings (0, pi/2, pi, 3pi/2)
+    pad_spacing: float = 0.06  # take-off pads apart in the y = start_y face (> d_c)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -62,6 +63,16 @@ class RadioConfig:
     range: float = 0.3  # rho; .inf for global communication
     relay: bool = False  # forward everything known (multi-hop) instead of single hop
     collision_distance: float = 0.05  # d_c
+
+
+@dataclasses.dataclass(frozen=True)
+class SafetyConfig:
+    """Safe flight: the rules are written in jaxmripp.spec.flight."""
+
+    flight: str = "known_free"  # known_free | truncate | optimistic (unsafe reference)
+    takeoff_scan: bool = False  # a full turn at the start pose before the first decision
+    intents: bool = True  # robots in range announce their flights; lower priority holds
+    priority: str = "id"  # id | budget: who goes first among robots in range
 
 
 @dataclasses.dataclass(frozen=True)
@@ -173,6 +184,7 @@ class Config:
     robots: RobotConfig = RobotConfig()
     sensor: SensorConfig = SensorConfig()
     radio: RadioConfig = RadioConfig()
+    safety: SafetyConfig = SafetyConfig()
     candidates: CandidateConfig = CandidateConfig()
     gp: GPConfig = GPConfig()
     reward: RewardConfig = RewardConfig()

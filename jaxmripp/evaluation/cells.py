@@ -94,6 +94,28 @@ def auto_batch(params: EnvParams, memory_bytes: float = 1.5e9) -> int:
     return max(1, int(memory_bytes // per_episode))
 
 
+# Per-episode safety counts (jaxmripp.spec.flight): EpisodeResult field -> table header.
+SAFETY_COUNTS = {
+    "obstacle_collisions": "obstacle coll.",
+    "robot_collisions_in_range": "robot coll. in range",
+    "robot_collisions_out_of_range": "robot coll. out of range",
+    "blocked": "blocked",
+    "held": "held",
+}
+
+
+def safety_counts(result) -> dict[str, np.ndarray]:
+    """{count: (E,) array} from an EpisodeResult (NumPy or JAX leaves)."""
+    return {name: np.asarray(getattr(result, name)) for name in SAFETY_COUNTS}
+
+
+def safety_columns(counts: dict[str, np.ndarray] | None = None) -> str:
+    """Markdown cells: the headers (counts None) or the per-episode means."""
+    if counts is None:
+        return " | ".join(SAFETY_COUNTS.values()) + " |"
+    return " | ".join(f"{counts[name].mean():.2f}" for name in SAFETY_COUNTS) + " |"
+
+
 @dataclasses.dataclass
 class ShapeRun:
     """Every episode of one planner on one cell, as NumPy arrays, plus timings."""
@@ -106,8 +128,7 @@ class ShapeRun:
     discovered: np.ndarray  # (E,) % of the world's windows found; E = worlds * trials
     targets: np.ndarray  # (E,) real windows in the world
     steps: np.ndarray
-    obstacle_collisions: np.ndarray
-    robot_collisions: np.ndarray
+    safety: dict[str, np.ndarray]  # SAFETY_COUNTS -> (E,) per-episode counts
     distance: np.ndarray
     contacts: np.ndarray
     curve_discovered: np.ndarray  # (E, T + 1) %
@@ -123,8 +144,7 @@ class ShapeRun:
 
     def result_dict(self) -> dict:
         """The layout `evaluate.summary_table` and viz.discovery_curves read."""
-        return {"discovered": self.discovered, "obstacle_collisions": self.obstacle_collisions,
-                "robot_collisions": self.robot_collisions, "distance": self.distance,
+        return {"discovered": self.discovered, "safety": self.safety, "distance": self.distance,
                 "ms_per_robot_step": self.ms_per_robot_step, "compile_s": self.compile_s,
                 "curve_discovered": self.curve_discovered, "curve_budget": self.curve_budget}
 
@@ -194,8 +214,7 @@ def _shape_run(planner: str, shape: Shape, worlds: int, trials: int, max_steps: 
         planner=planner, shape=shape, worlds=worlds, trials=trials, max_steps=max_steps,
         discovered=result.discovered_fraction.astype(np.float64) * 100.0,
         targets=snap.target_valid.sum(axis=-1),
-        steps=result.steps, obstacle_collisions=result.obstacle_collisions,
-        robot_collisions=result.robot_collisions, distance=result.distance,
+        steps=result.steps, safety=safety_counts(result), distance=result.distance,
         contacts=result.contacts,
         curve_discovered=t.discovered_fraction * 100.0, curve_budget=t.budget_used,
         positions=t.position if keep_pictures else None,

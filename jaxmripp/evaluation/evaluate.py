@@ -26,6 +26,7 @@ import numpy as np
 
 from jaxmripp.config import Config
 from jaxmripp.evaluation import baselines
+from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_counts
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import episode
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -89,8 +90,7 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
         steps = max(float(np.asarray(result.steps).sum()) * params.n_robots, 1.0)
         out[planner.name] = {
             "discovered": np.asarray(result.discovered_fraction) * 100.0,
-            "obstacle_collisions": np.asarray(result.obstacle_collisions),
-            "robot_collisions": np.asarray(result.robot_collisions),
+            "safety": safety_counts(result),
             "distance": np.asarray(result.distance),
             "ms_per_robot_step": 1000.0 * run_s / steps,
             "compile_s": seconds,
@@ -101,17 +101,16 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
 
 
 def summary_table(results: dict[str, dict], title: str = "") -> str:
-    """Markdown table: mean +- std % discovered, 95% CI, ms per robot-step, collisions."""
+    """Markdown table: mean +- std % discovered, 95% CI, ms per robot-step, safety counts."""
     lines = [f"### {title}" if title else "",
-             "| planner | % targets | 95% CI | ms / robot-step | obstacle coll. | robot coll. |",
-             "|---|---|---|---|---|---|"]
+             "| planner | % targets | 95% CI | ms / robot-step | " + safety_columns(),
+             "|---|---|---|---|" + "---|" * len(SAFETY_COUNTS)]
     for name, r in results.items():
         d = r["discovered"]
         half = 1.96 * d.std(ddof=1) / math.sqrt(len(d)) if len(d) > 1 else float("nan")
         lines.append(f"| {name} | {d.mean():.2f} +- {d.std(ddof=1) if len(d) > 1 else 0:.2f} | "
                      f"[{d.mean() - half:.2f}, {d.mean() + half:.2f}] | "
-                     f"{r['ms_per_robot_step']:.3f} | {r['obstacle_collisions'].mean():.2f} | "
-                     f"{r['robot_collisions'].mean():.2f} |")
+                     f"{r['ms_per_robot_step']:.3f} | " + safety_columns(r["safety"]))
     return "\n".join(line for line in lines if line)
 
 

@@ -34,7 +34,7 @@ from typing import Callable, Sequence
 from jaxmripp.config import Config
 from jaxmripp.evaluation import cells, evaluate
 from jaxmripp.sim.episode import Planner
-from jaxmripp.evaluation.cells import Shape, ShapeRun
+from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
 from jaxmripp.evaluation.planners import baseline_planner, eval_setting
 from jaxmripp.evaluation.stats import mean_ci, welch_ttest
 
@@ -93,8 +93,7 @@ class SweepResult:
                     "budget": r.shape.budget, "world": e // r.trials, "trial": e % r.trials,
                     "discovered_pct": round(float(r.discovered[e]), 6),
                     "targets": int(r.targets[e]), "steps": int(r.steps[e]),
-                    "obstacle_collisions": int(r.obstacle_collisions[e]),
-                    "robot_collisions": int(r.robot_collisions[e]),
+                    **{name: int(count[e]) for name, count in r.safety.items()},
                     "distance": round(float(r.distance[e]), 6), "contacts": int(r.contacts[e]),
                 })
         return rows
@@ -110,8 +109,7 @@ class SweepResult:
                 "ci95": [mean - half, mean + half],
                 "plan_ms_per_robot_step": _num(r.plan_ms_per_robot_step),
                 "step_ms_per_robot_step": r.ms_per_robot_step,
-                "obstacle_collisions": float(r.obstacle_collisions.mean()),
-                "robot_collisions": float(r.robot_collisions.mean()),
+                **{name: float(count.mean()) for name, count in r.safety.items()},
                 "compile_s": r.compile_s, "compiled_with_cells": r.cells, "run_s": r.run_s,
             })
         return rows
@@ -141,14 +139,13 @@ class SweepResult:
             if timing:
                 head += " plan ms / robot-step | sim+plan ms / robot-step |"
                 rule += "---|---|"
-            out += [head + " obstacle coll. | robot coll. |", rule + "---|---|"]
+            out += [head + " " + safety_columns(), rule + "---|" * len(SAFETY_COUNTS)]
             for name, r in runs.items():
                 mean, std, half = mean_ci(r.discovered)
                 row = f"| {name} | {mean:.2f} +- {std:.2f} | [{mean - half:.2f}, {mean + half:.2f}] |"
                 if timing:
                     row += f" {_ms(r.plan_ms_per_robot_step)} | {_ms(r.ms_per_robot_step)} |"
-                row += (f" {r.obstacle_collisions.mean():.2f} |"
-                        f" {r.robot_collisions.mean():.2f} |")
+                row += " " + safety_columns(r.safety)
                 out.append(row)
             out.append("")
         tests = self.ttests()

@@ -102,6 +102,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
     gp_cfg, size = params.gp, params.size
     reach = params.candidates.shell[1]
     shared = params.gp.shared_utility
+    line_ok = geometry.line_rule(params.safety.flight)
 
     def children(ctx: Context, node: Node):
         """Poses (L, 4), feasibility (L,) and scores (L,) of a (non-root) node's actions."""
@@ -111,7 +112,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         cost = distance + ctx.turn_cost * turned
         valid = (ctx.slot_kept & geometry.inside_world(position) & (cost <= node.budget)
                  & ((distance > 0) | turned)
-                 & geometry.mapped_clear(node.position, position, ctx.occupancy, size, reach))
+                 & line_ok(node.position, position, ctx.occupancy, size, reach))
         return geometry.pose(position, ctx.heading), valid
 
     def expand(ctx: Context, action, node: Node):

@@ -4,15 +4,18 @@
     planner = OnboardPlanner.load("runs/default/export", robot_id=0, budget=10 / 3)
     planner.sense(position, heading, voxels, values, n_seen)   # every round
     radio.send(planner.message()); [planner.receive(m) for m in radio.inbox()]
-    decision = planner.decide()                                 # decision.pose, .reason
+    planner.decide()                                            # the chosen pose
+    radio.send(planner.intent_message()); [planner.receive_intent(m) for m in radio.inbox()]
+    decision = planner.resolve()                                # decision.pose, .reason
 
 See `jaxmripp.runtime.planner` for the round, `weights` for the export format and
 `messages` for the radio protocol. The planner's parts: `validation` (inputs),
 `feeding` (GP feeding, rule in `jaxmripp.spec.feeding`), `candidates` (sampling),
 `observation` (policy inputs, rule in `jaxmripp.spec.layout`), `safety` (the filter),
-`policy` (the network), `gp` and `mapping`. Every module here imports only NumPy, the
-standard library, `jaxmripp.spec` and other runtime modules
-(tests/test_runtime_numpy_only.py checks it).
+`flight` (closest approach and the hold rule, `jaxmripp.spec.flight`), `policy` (the
+network), `gp` and `mapping` (the map and the traversal rule of `jaxmripp.spec.grid`).
+Every module here imports only NumPy, the standard library, `jaxmripp.spec` and other
+runtime modules (tests/test_runtime_numpy_only.py checks it).
 """
 
 from jaxmripp.runtime.candidates import Candidates

@@ -2,11 +2,12 @@
 
 Draw 0 is the current position (turning in place); the other draws are uniform on the
 shell [lo, hi] around the robot. A draw is kept when it lies in the unit cube, its straight
-line of flight crosses nothing the robot has mapped OCCUPIED (half-voxel samples, as in
-JAX) and it is farther than d_c from every robot the robot knows about; a pose (draw x
-heading) is feasible when its cost (distance + turn cost on a heading change) fits the
-budget and it is not the current pose. Feasible draws fill the K slots in draw order;
-padding sits at the current position and is marked invalid. Given the same uniforms
+line of flight is known free (every voxel it traverses is FREE in the robot's map, the
+traversal rule of `jaxmripp.spec.grid`) and the flight's closest approach to every robot
+heard this round, hovering where it was heard, exceeds d_c (`jaxmripp.spec.flight`); a
+pose (draw x heading) is feasible when its cost (distance + turn cost on a heading change)
+fits the budget and it is not the current pose. Feasible draws fill the K slots in draw
+order; padding sits at the current position and is marked invalid. Given the same uniforms
 (`uniforms`, shape (K * oversample - 1, 3)) the output equals the JAX sampler's up to
 float32 rounding of the trigonometry.
 """
@@ -17,6 +18,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxmripp.runtime import flight
 from jaxmripp.runtime.mapping import N_HEADINGS, OccupancyMap, inside_world
 from jaxmripp.runtime.weights import RuntimeSpec
 
@@ -36,17 +38,6 @@ def pose_cost(position, heading, targets, target_headings, turn_cost) -> np.ndar
     """(L,) float32 budget charged: Euclidean distance + turn cost on a heading change."""
     distance = np.linalg.norm(np.asarray(targets, F32) - position, axis=-1).astype(F32)
     return distance + F32(turn_cost) * (np.asarray(target_headings) != heading).astype(F32)
-
-
-def clear_of_robots(points: np.ndarray, others: np.ndarray, collision_distance: float
-                    ) -> np.ndarray:
-    """(M, 3), (R, 3) known robots -> (M,) True where every known robot is beyond d_c."""
-    if len(others) == 0:
-        return np.ones(len(points), bool)
-    gap2 = np.sum(np.square(points[:, None, :] - np.asarray(others, F32)[None]), axis=-1)
-    # d_c squared in float32, as the env squares its traced float32 d_c (F32(d_c ** 2),
-    # rounded once from double, is one ulp off for d_c = 0.05).
-    return np.all(gap2 > np.square(F32(collision_distance)), axis=-1)
 
 
 def sample(
@@ -76,9 +67,12 @@ def sample(
     distance = np.linalg.norm(drawn - position, axis=-1).astype(F32)
 
     inside = inside_world(drawn)
-    apart = clear_of_robots(drawn, others, spec.collision_distance)
-    place_ok = inside & apart
-    place_ok[place_ok] = occupancy.sampled_clear(position, drawn[place_ok], max_length=hi)
+    free = inside.copy()  # draws outside the world are rejected anyway: not traversed
+    free[inside] = occupancy.known_free(position, drawn[inside], max_length=hi)
+    apart = free.copy()
+    apart[free] = flight.clear_of_robots(position, drawn[free], others,
+                                         spec.collision_distance)
+    place_ok = inside & free & apart
 
     headings = np.arange(N_HEADINGS, dtype=np.int32)
     turns = headings != heading
@@ -88,8 +82,8 @@ def sample(
     keep = np.any(pose_ok, axis=-1)
     if stats is not None:
         stats.update(draws=n_draws, outside=int((~inside).sum()),
-                     crowded=int((inside & ~apart).sum()),
-                     blocked=int((inside & apart & ~place_ok).sum()),
+                     blocked=int((inside & ~free).sum()),
+                     crowded=int((inside & free & ~apart).sum()),
                      over_budget=int((place_ok & ~keep).sum()))
 
     slot = np.argsort(~keep, kind="stable")[:k]

@@ -1,15 +1,11 @@
 """A robot's own occupancy map and the geometry it needs, in NumPy.
 
-Codes, headings and the segment rule are those of `jaxmripp.spec.grid`; this module is
-their NumPy implementation (`jaxmripp.sim.geometry` is the JAX one).
-
-Two segment tests:
-- `sampled_clear`: the candidate rule of jaxmripp.sim.geometry.mapped_clear (the spec's
-  segment points), used to sample candidates exactly as the JAX env does;
-- `exact_clear`: every voxel whose interior the segment passes through, start voxel
-  included (a voxel traversal, no sampling), used by the safety filter, so a returned pose
-  never crosses a voxel the robot knows to be occupied, not even at a corner the sampled
-  rule steps over.
+Codes, headings and the traversal rule of a line of flight are those of
+`jaxmripp.spec.grid`; this module is their NumPy implementation (`jaxmripp.sim.geometry` is
+the JAX one). `traverse` computes the same float32 crossing times with the same
+comparisons, so both sides list the same voxels for a segment, bit for bit; the runtime's
+version is vectorised over many segment ends at once and never runs out of slots (see
+`traverse`).
 """
 
 from __future__ import annotations
@@ -18,8 +14,10 @@ import math
 
 import numpy as np
 
-from jaxmripp.spec.grid import (HEADING_ANGLES, HEADING_VECTORS, N_HEADINGS, OCCUPIED,  # noqa: F401
-                                UNKNOWN, segment_samples)
+from jaxmripp.spec.grid import (FREE, HEADING_ANGLES, HEADING_VECTORS, N_HEADINGS,  # noqa: F401
+                                OCCUPIED, UNKNOWN)
+
+F32 = np.float32
 
 
 def voxel_of(position: np.ndarray, size: int) -> np.ndarray:
@@ -36,14 +34,92 @@ def inside_world(position: np.ndarray) -> np.ndarray:
     return np.all((position >= 0.0) & (position <= 1.0), axis=-1)
 
 
-def segment_voxels(start: np.ndarray, ends: np.ndarray, size: int,
-                   max_length: float) -> tuple[np.ndarray, np.ndarray]:
-    """(3,), (M, 3) -> points and voxels (M, n, 3) of the spec's segment rule
-    (`jaxmripp.spec.grid`; `jaxmripp.sim.geometry.segment_voxels` in JAX)."""
-    count = segment_samples(size, max_length)
-    t = np.arange(1, count + 1, dtype=np.float32) / np.float32(count)
-    points = start + t[None, :, None] * (ends - start)[:, None, :]
-    return points, voxel_of(points, size)
+def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | None = None
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(3,), (..., 3) ends -> voxels (..., V, 3) int64 and entry (..., V) float32: every
+    voxel the line of flight start -> end traverses (the rule of `jaxmripp.spec.grid`),
+    each with the t in [0, 1] where the flight enters it.
+
+    Slots: the start voxel, the leaving voxel, per crossing of each axis the voxel owning
+    the crossing point and the voxel after it, and the end voxel; unused slots repeat the
+    start voxel with entry 0. The crossing times are the spec's float32 (p - s) / d, so
+    the voxels and their first entries equal those of `jaxmripp.sim.geometry.traverse`
+    (whose slots are laid out by crossing time instead). The slot count fits the longest
+    segment given, so every list is complete whatever its length; `max_length` (the JAX
+    side's static bound) is accepted for the same signature and not needed here.
+    """
+    g = F32(size)
+    s = np.asarray(start, F32).reshape(3) * g  # (3,)
+    e = np.asarray(end, F32) * g  # (..., 3)
+    shape = e.shape[:-1]
+    e = e.reshape(-1, 3)
+    d = e - s  # (M, 3)
+    span = float(np.max(np.abs(d), initial=0.0))
+    c = int(math.ceil(span)) + 1
+    step = np.sign(d).astype(np.int64)
+    leave = np.where(d < 0, np.ceil(s) - F32(1), np.floor(s)).astype(np.int64)  # (M, 3)
+    k = np.arange(1, c + 1, dtype=F32)
+    up, down = np.floor(s)[:, None] + k, np.ceil(s)[:, None] - k  # (3, c)
+    plane = np.where(d[..., None] > 0, up, down)  # (M, 3, c)
+    crossed = np.where(d[..., None] > 0, plane < e[..., None], plane > e[..., None]) \
+        & (d[..., None] != 0)
+    safe_d = np.where(d == 0, F32(1), d)[..., None]
+    with np.errstate(invalid="ignore", over="ignore"):
+        t = np.where(crossed, (plane - s[:, None]) / safe_d, F32(np.inf)).astype(F32)
+    events = t.reshape(len(e), -1)  # (M, 3c)
+    # Per event and axis: crossings of that axis at or before (strictly before) the event.
+    at_or_before = np.sum(t[:, None] <= events[:, :, None, None], axis=-1)  # (M, 3c, 3)
+    before = np.sum(t[:, None] < events[:, :, None, None], axis=-1)
+    after_voxel = leave[:, None] + step[:, None] * at_or_before
+    point_voxel = leave[:, None] + step[:, None] \
+        * np.where(d[:, None] < 0, before, at_or_before)
+    first = np.broadcast_to(np.floor(s).astype(np.int64), (len(e), 1, 3))
+    real = np.isfinite(events)[..., None]
+    voxels = np.concatenate([
+        first, leave[:, None], np.where(real, point_voxel, first),
+        np.where(real, after_voxel, first), np.floor(e).astype(np.int64)[:, None]], axis=1)
+    zeros, ones = np.zeros((len(e), 2), F32), np.ones((len(e), 1), F32)
+    hit = np.where(real[..., 0], events, F32(0))
+    entry = np.concatenate([zeros, hit, hit, ones], axis=1)
+    voxels = np.clip(voxels, 0, size - 1)
+    return voxels.reshape(*shape, -1, 3), entry.reshape(*shape, -1)
+
+
+def fly_until(start: np.ndarray, end: np.ndarray, blocking: np.ndarray, size: int,
+              max_length: float) -> tuple[np.ndarray, bool, np.ndarray]:
+    """Flies start -> end until the first traversed voxel for which `blocking` (a (G^3,)
+    bool table) is True, as `jaxmripp.sim.geometry.fly_until`: returns (stop (3,) float32,
+    hit, that voxel (3,) or None). With a hit the robot stops midway through the last
+    piece of the segment before the blocking voxel."""
+    start, end = np.asarray(start, F32), np.asarray(end, F32)
+    voxels, entry = traverse(start, end, size, max_length)
+    blocked = np.asarray(blocking)[linear_index(voxels, size)]
+    if not blocked.any():
+        return end.copy(), False, None
+    hit_entry = np.min(entry[blocked])
+    previous = np.max(np.where(entry < hit_entry, entry, F32(0)))
+    t_stop = F32(0.5) * (previous + hit_entry)
+    stop = (start + t_stop * (end - start)).astype(F32)
+    return stop, True, voxels[int(np.argmin(np.where(blocked, entry, np.inf)))]
+
+
+def voxel_ahead(start: np.ndarray, end: np.ndarray, stop: np.ndarray, codes: np.ndarray,
+                size: int, max_length: float) -> np.ndarray | None:
+    """The voxel a flight start -> end that stopped at `stop` was stopped by: the first
+    traversed voxel entered after the stop (`fly_until` stops midway before it). Where
+    several are entered at that moment (an edge or corner), the first one the map (flat
+    `codes`) does not know to be FREE. None when the stop is past every entry."""
+    start, end = np.asarray(start, F32), np.asarray(end, F32)
+    voxels, entry = traverse(start, end, size, max_length)
+    d = (end - start).astype(np.float64)
+    length2 = float(d @ d)
+    t_stop = float((np.asarray(stop, np.float64) - start) @ d) / length2 if length2 else 0.0
+    later = entry > t_stop
+    if not later.any():
+        return None
+    ahead = np.nonzero(later & (entry == np.min(entry[later])))[0]
+    unknown = [i for i in ahead if codes[linear_index(voxels[i], size)] != FREE]
+    return voxels[unknown[0] if unknown else ahead[0]]
 
 
 class OccupancyMap:
@@ -65,39 +141,17 @@ class OccupancyMap:
     def mark_occupied(self, voxel: np.ndarray) -> None:
         self.codes[linear_index(np.asarray(voxel), self.size)] = OCCUPIED
 
-    def sampled_clear(self, start: np.ndarray, ends: np.ndarray, max_length: float) -> np.ndarray:
-        """(3,), (M, 3) -> (M,) True where no half-voxel sample is mapped OCCUPIED.
+    def mark_own_voxel(self, position: np.ndarray) -> None:
+        """The voxel the robot is in is FREE (it is there; `jaxmripp.spec.flight`)."""
+        self.codes[linear_index(voxel_of(np.asarray(position, F32), self.size),
+                                self.size)] = FREE
 
-        jaxmripp.sim.geometry.mapped_clear: the sample count is fixed by the longest
-        segment (max_length); unknown voxels count as free.
-        """
-        _, voxels = segment_voxels(start, ends, self.size, max_length)
-        return np.all(self.codes[linear_index(voxels, self.size)] != OCCUPIED, axis=-1)
-
-    def exact_clear(self, start: np.ndarray, ends: np.ndarray) -> np.ndarray:
-        """(3,), (M, 3) -> (M,) True where no voxel the segment passes through is OCCUPIED.
-
-        In voxel units, the segment s + t (e - s), t in [0, 1], crosses the integer planes
-        strictly between s and e along each axis; between consecutive crossings it stays in
-        one voxel, named by the midpoint. Zero-length pieces (passing exactly through an
-        edge or corner) touch but do not enter a voxel and are skipped. Float64 throughout.
-        """
-        g = self.size
-        s = np.asarray(start, np.float64) * g
-        e = np.asarray(ends, np.float64).reshape(-1, 3) * g
-        d = e - s  # (M, 3)
-        lo, hi = np.minimum(s, e), np.maximum(s, e)
-        span = int(math.ceil(float(np.max(hi - lo, initial=0.0)))) + 1
-        planes = np.floor(lo)[..., None] + np.arange(1, span + 1)  # (M, 3, span)
-        crossing = planes < hi[..., None]
-        safe_d = np.where(d == 0.0, 1.0, d)[..., None]
-        t = np.where(crossing, (planes - s[None, :, None]) / safe_d, 1.0).reshape(len(e), -1)
-        ends_t = np.zeros((len(e), 1)), np.ones((len(e), 1))
-        t = np.sort(np.concatenate([ends_t[0], t, ends_t[1]], axis=1), axis=1)
-        mid = 0.5 * (t[:, 1:] + t[:, :-1])
-        real = (t[:, 1:] - t[:, :-1]) > 1e-12
-        real[:, 0] |= ~real.any(axis=1)  # a zero-length segment: its own voxel
-        points = s + mid[..., None] * d[:, None, :]
-        voxel = np.clip(np.floor(points), 0, g - 1).astype(np.int64)
-        hit = self.codes[linear_index(voxel, g)] == OCCUPIED
-        return ~np.any(hit & real, axis=1)
+    def known_free(self, start: np.ndarray, ends: np.ndarray, max_length: float
+                   ) -> np.ndarray:
+        """(3,), (M, 3) -> (M,) True where every voxel the flight start -> end traverses
+        is FREE in this map (`jaxmripp.sim.geometry.known_free`)."""
+        ends = np.asarray(ends, F32).reshape(-1, 3)
+        if len(ends) == 0:
+            return np.zeros(0, bool)
+        voxels, _ = traverse(start, ends, self.size, max_length)
+        return np.all(self.codes[linear_index(voxels, self.size)] == FREE, axis=-1)

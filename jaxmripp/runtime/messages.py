@@ -1,8 +1,8 @@
 """Radio messages between robots: encoding and validation of the format that
 `jaxmripp.spec.protocol` defines (type tag, version, fields, float rule).
 
-Receivers refuse newer protocols (`ProtocolVersionError`) and malformed records
-(`MessageError`), with one-line messages.
+Receivers refuse any other protocol version (`ProtocolVersionError`, naming both
+versions) and malformed records (`MessageError`), with one-line messages.
 """
 
 from __future__ import annotations
@@ -26,6 +26,8 @@ class Message:
     start: int  # index of poses[0] in the sender's history
     poses: np.ndarray  # (K, 4) float32 history poses (x, y, z, heading angle)
     utilities: np.ndarray  # (K,) float32 windows seen from each pose / utility_norm
+    budget_left: float  # float32, the sender's remaining budget
+    intent: np.ndarray | None = None  # (3,) float32 target of the chosen flight, or None
     protocol: int = PROTOCOL_VERSION
 
     @property
@@ -49,6 +51,8 @@ def encode(message: Message) -> bytes:
         "start": int(message.start),
         "poses": [_floats(p) for p in poses],
         "utilities": _floats(message.utilities),
+        "budget_left": float(np.float32(message.budget_left)),
+        "intent": None if message.intent is None else _floats(message.intent),
     }
     return json.dumps(record, separators=(",", ":"), allow_nan=False).encode()
 
@@ -74,10 +78,11 @@ def decode(data: bytes | str) -> Message:
     if not _is_int(protocol) or protocol < 1:
         raise MessageError(f"radio message has no valid protocol version ({protocol!r})")
     sender = record.get("sender")
-    if protocol > PROTOCOL_VERSION:
+    if protocol != PROTOCOL_VERSION:
+        update = "this robot" if protocol > PROTOCOL_VERSION else f"robot {sender!r}"
         raise ProtocolVersionError(
             f"radio message from robot {sender!r} uses protocol {protocol}; this runtime "
-            f"speaks up to {PROTOCOL_VERSION} (update the runtime on this robot)")
+            f"speaks protocol {PROTOCOL_VERSION} only (update the runtime on {update})")
     if not _is_int(sender) or sender < 0:
         raise MessageError(f"radio message has an invalid sender id ({sender!r})")
     where = f"radio message from robot {sender}"
@@ -97,9 +102,18 @@ def decode(data: bytes | str) -> Message:
     utilities = _vector(raw_utilities, len(raw_utilities), f"{where}: utilities")
     if np.any(utilities < 0):
         raise MessageError(f"{where}: utilities must be non-negative")
-    if not (np.all(inside(position)) and np.all(inside(poses[:, :3]))):
+    budget_left = record.get("budget_left")
+    if isinstance(budget_left, bool) or not isinstance(budget_left, (int, float)) \
+            or not math.isfinite(budget_left) or budget_left < 0:
+        raise MessageError(f"{where}: budget_left {budget_left!r} is not a non-negative "
+                           "number")
+    raw_intent = record.get("intent", "missing")
+    intent = None if raw_intent is None else _vector(raw_intent, 3, f"{where}: intent")
+    if not (np.all(inside(position)) and np.all(inside(poses[:, :3]))
+            and (intent is None or inside(intent))):
         raise MessageError(f"{where}: a position lies outside the unit cube")
-    return Message(sender, position, heading, start, poses, utilities, protocol)
+    return Message(sender, position, heading, start, poses, utilities,
+                   np.float32(budget_left), intent, protocol)
 
 
 def inside(positions: np.ndarray) -> np.ndarray:

@@ -3,24 +3,35 @@
 One planning round, on every robot, in this order (the JAX env's order, `jaxmripp.sim.env`):
 
     planner.sense(position, heading, voxels, values, n_seen)   # where I am, what I saw
-    radio.broadcast(planner.message())                          # my waypoints + position
+    radio.broadcast(planner.message())                          # waypoints, position, budget
     for data in radio.received(): planner.receive(data)         # robots within range
-    decision = planner.decide()                                 # -> decision.pose
+    decision = planner.decide()                                 # the chosen pose
+    radio.broadcast(planner.intent_message())                   # its target (null: hover)
+    for data in radio.received(): planner.receive_intent(data)  # their targets
+    decision = planner.resolve()                                # the pose to fly, or a hold
 
 `sense` charges the budget for the move just made, records the visited pose and the
-number of windows seen from it, and writes the observed voxels into the map. `receive`
-stores what a neighbour visited and where it is now. `decide` feeds the GPs (the rule of
-`jaxmripp.spec.feeding`, in `feeding`), draws candidate poses (`candidates`) or takes ones
-supplied by the caller, builds the policy's inputs (the rule of `jaxmripp.spec.layout`, in
-`observation`), and picks the next pose with the exported policy or the greedy rule of
-`jaxmripp.evaluation.baselines.greedy_planner`. Inputs are checked first (`validation`),
-so a rejected call changes nothing.
+number of windows seen from it, writes the observed voxels into the map and marks the
+robot's own voxel FREE. With `safety.takeoff_scan` the first `sense` is the take-off scan:
+the caller turns the robot through the four headings at its start pose and passes every
+voxel seen on the way (n_seen: the windows seen at the start heading); it is charged
+`SCAN_TURNS` turns. `receive` stores what a neighbour visited and where it is now.
+`decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`), draws
+candidate poses (`candidates`) or takes ones supplied by the caller, builds the policy's
+inputs (the rule of `jaxmripp.spec.layout`, in `observation`), and picks the next pose with
+the exported policy or the greedy rule of `jaxmripp.evaluation.baselines.greedy_planner`.
+`resolve` applies the intent rule of `jaxmripp.spec.flight` (with `safety.intents`): if the
+chosen flight comes within d_c of the flight announced by a higher-priority robot heard
+(`safety.priority`), the robot holds -- it stays where it is, is charged nothing, and the
+next `sense` gets the same pose. Inputs are checked first (`validation`), so a rejected
+call changes nothing.
 
 Safety filter (`safety`): whatever picks the pose, it is chosen among candidates whose
-straight flight crosses no voxel the robot knows to be OCCUPIED (exact voxel traversal,
-start voxel included), that lie more than d_c from every robot heard this round, inside
-the world and within the budget. If none is left the robot hovers: the decision is its
-current pose, `hover` is True and `reason` says why.
+straight flight is known free (every voxel it traverses is FREE in the robot's map, the
+traversal rule of `jaxmripp.spec.grid`), whose flight keeps more than d_c from every robot
+heard this round (closest approach, `flight`), inside the world and within the budget. If
+none is left the robot hovers: the decision is its current pose, `hover` is True and
+`reason` says why.
 
 Differences from the JAX env, on purpose: the radio is single hop (the paper's; a relay
 export is refused by nothing but still runs single hop), a robot with no safe candidate
@@ -37,13 +48,14 @@ from typing import Any
 import numpy as np
 
 from jaxmripp.runtime import candidates as cands
-from jaxmripp.runtime import messages, observation, safety, validation
+from jaxmripp.runtime import flight, messages, observation, safety, validation
 from jaxmripp.runtime.errors import MessageError, PlannerStateError
 from jaxmripp.runtime.feeding import FeedSchedule
 from jaxmripp.runtime.gp import GaussianProcess
-from jaxmripp.runtime.mapping import OccupancyMap, segment_voxels
+from jaxmripp.runtime.mapping import OccupancyMap, voxel_ahead
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.weights import RuntimeSpec
+from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import HEADING_ANGLES
 from jaxmripp.spec.layout import FEATURES
 
@@ -54,7 +66,7 @@ MODES = validation.MODES
 
 @dataclasses.dataclass(frozen=True)
 class Decision:
-    """The outcome of one `decide` call."""
+    """The outcome of one `decide` (or `resolve`) call."""
 
     pose: np.ndarray  # (4,) float32 next waypoint (x, y, z, heading angle); current if hover
     position: np.ndarray  # (3,) float32
@@ -69,6 +81,7 @@ class Decision:
     features: np.ndarray  # (L, F) policy input, layout FEATURES
     robot_state: np.ndarray  # (S,) policy input, layout ROBOT_STATE
     candidates: cands.Candidates
+    yields_to: int | None = None  # a hold (`resolve`): the robot whose flight goes first
 
 
 class OnboardPlanner:
@@ -86,21 +99,18 @@ class OnboardPlanner:
         lam: float = 0.0,
         max_steps: int | None = None,
         seed: int | None = None,
-        segment_check: str = "exact",
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
         mode: "policy" (needs `policy`) or "greedy" (score = utility mean + kappa * std -
         lam * communication mean); max_steps: the episode length the policy's step feature
-        is normalised by (default: the export's); seed: candidate sampling (default: id);
-        segment_check: how the safety filter tests a line of flight against the map --
-        "exact" (every voxel the segment enters; the guarantee) or "sampled" (the JAX
-        candidate rule's half-voxel samples, which can step over a voxel's corner; only for
-        reproducing JAX decisions bit for bit)."""
+        is normalised by (default: the export's); seed: candidate sampling (default: id).
+        The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
+        `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
         mode = mode or ("policy" if policy is not None else "greedy")
-        validation.settings(mode, policy is not None, robot_id, team_size, segment_check,
-                            budget)
+        validation.settings(mode, policy is not None, robot_id, team_size, budget,
+                            spec.flight, spec.priority)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size
@@ -109,7 +119,6 @@ class OnboardPlanner:
         self.kappa, self.lam = float(kappa), float(lam)
         self.max_steps = spec.max_steps if max_steps is None else int(max_steps)
         self.rng = np.random.default_rng(self.id if seed is None else seed)
-        self.segment_check = segment_check
 
         self.map = OccupancyMap(spec.size)
         self.utility_gp = GaussianProcess(spec.gp)
@@ -129,6 +138,8 @@ class OnboardPlanner:
         self.peer_utility: dict[int, list[np.float32]] = {j: [] for j in self._peer_ids()}
         self.contacts: dict[int, np.ndarray] = {}  # positions heard this round, by sender
         self._command: tuple[np.ndarray, np.ndarray] | None = None  # (from, to) of last move
+        self._pending: Decision | None = None  # decided, not resolved yet
+        self.intents: dict[int, tuple] = {}  # sender -> (position, target, budget_left)
 
     @classmethod
     def load(cls, export: str | Path, robot_id: int, budget: float, **kwargs) -> "OnboardPlanner":
@@ -149,11 +160,14 @@ class OnboardPlanner:
         """Where the robot is now and what its camera saw from there.
 
         position (3,) in the unit cube and heading index 0..3 (+x, +y, -x, -y): the pose
-        reached (short of the commanded one if `blocked`); voxels: observed voxels as flat
-        C-order indices into (G, G, G) (G^3 marks "not observed" and is skipped) or as
-        (K, 3) integer coordinates; values: their codes (0 free, 2 occupied); n_seen:
-        windows seen from this pose. blocked: the last move was stopped by an obstacle;
-        the voxel ahead on the commanded segment is then mapped occupied.
+        reached (short of the commanded one if `blocked`; the same pose after a hover or a
+        hold); voxels: observed voxels as flat C-order indices into (G, G, G) (G^3 marks
+        "not observed" and is skipped) or as (K, 3) integer coordinates; values: their
+        codes (0 free, 2 occupied); n_seen: windows seen from this pose. With
+        `spec.takeoff_scan` the first call is the take-off scan (voxels seen at all four
+        headings; charged SCAN_TURNS turns). blocked: the last move was stopped by an
+        obstacle; the voxel ahead of the stop on the commanded segment is then mapped
+        occupied.
         """
         position = validation.position(position, "sense: position")
         heading = validation.heading(heading, "sense: heading")
@@ -161,37 +175,56 @@ class OnboardPlanner:
         n_seen = validation.n_seen(n_seen)
 
         first = self.position is None
-        moved = first or self._command is not None  # a hover is not a visit
+        moved = first or self._command is not None  # a hover or a hold is not a visit
+        if first and self.spec.takeoff_scan:
+            scan = F32(SCAN_TURNS) * F32(self.spec.turn_cost)
+            self.budget_left = F32(max(self.budget_left - scan, F32(0.0)))
         if not first:
             self.step += 1
             if self._command is not None:
                 self._charge(position, heading)
                 if blocked:
-                    self.map.mark_occupied(self._bumped_voxel(position))
+                    start, end = self._command
+                    voxel = voxel_ahead(start, end, position, self.map.codes, self.spec.size,
+                                        self.spec.shell[1])
+                    if voxel is not None:
+                        self.map.mark_occupied(voxel)
         self.position, self.heading = position, heading
         self.map.update(flat, codes)
+        self.map.mark_own_voxel(position)
         if moved:
             self.history_pose.append(np.append(position, HEADING_ANGLES[heading]).astype(F32))
             self.history_utility.append(F32(n_seen) / F32(self.spec.utility_norm))
         self._command = None
+        self._pending, self.intents = None, {}
 
     def message(self, start: int = 0) -> bytes:
-        """This robot's radio broadcast: its history from `start` and its position."""
+        """This robot's first broadcast of a round: its history from `start`, its position
+        and its budget left (no intent)."""
         self._require_sensed("message")
         start = min(max(int(start), 0), len(self.history_pose))
         poses = np.asarray(self.history_pose[start:], F32).reshape(-1, 4)
         return messages.encode(messages.Message(
             sender=self.id, position=self.position, heading=self.heading, start=start,
-            poses=poses, utilities=np.asarray(self.history_utility[start:], F32)))
+            poses=poses, utilities=np.asarray(self.history_utility[start:], F32),
+            budget_left=self.budget_left))
+
+    def intent_message(self) -> bytes:
+        """This robot's second broadcast of a round, after `decide`: the target of the
+        flight it chose (null when it hovers), its position and budget left; no poses."""
+        decision = self._require_decided("intent_message")
+        end = len(self.history_pose)
+        return messages.encode(messages.Message(
+            sender=self.id, position=self.position, heading=self.heading, start=end,
+            poses=np.zeros((0, 4), F32), utilities=np.zeros(0, F32),
+            budget_left=self.budget_left,
+            intent=None if decision.hover else decision.position))
 
     def receive(self, data: bytes | str | messages.Message) -> messages.Message | None:
         """Takes one message heard this round; returns it (None for this robot's own echo)."""
-        message = data if isinstance(data, messages.Message) else messages.decode(data)
-        if message.sender == self.id:
+        message = self._heard(data)
+        if message is None:
             return None
-        if message.sender >= self.team_size:
-            raise MessageError(f"radio message from robot {message.sender}: ids of this team "
-                               f"are 0 .. {self.team_size - 1}")
         self.contacts[message.sender] = np.asarray(message.position, F32)
         # Histories only grow: append the part past what we hold, if the message reaches it
         # (a message starting beyond our end would leave a gap, so it is not used).
@@ -202,6 +235,28 @@ class OnboardPlanner:
             self.peer_utility[message.sender].extend(np.asarray(message.utilities[fresh:], F32))
         return message
 
+    def receive_intent(self, data: bytes | str | messages.Message
+                       ) -> messages.Message | None:
+        """Takes one intent message (`intent_message`) heard after `decide`; returns it
+        (None for this robot's own echo)."""
+        self._require_decided("receive_intent")
+        message = self._heard(data)
+        if message is None:
+            return None
+        self.intents[message.sender] = (np.asarray(message.position, F32), message.intent,
+                                        F32(message.budget_left))
+        return message
+
+    def _heard(self, data: bytes | str | messages.Message) -> messages.Message | None:
+        """A decoded message from a teammate, or None for this robot's own echo."""
+        message = data if isinstance(data, messages.Message) else messages.decode(data)
+        if message.sender == self.id:
+            return None
+        if message.sender >= self.team_size:
+            raise MessageError(f"radio message from robot {message.sender}: ids of this team "
+                               f"are 0 .. {self.team_size - 1}")
+        return message
+
     # -----------------------------------------------------------------------------------
     # Decision
 
@@ -210,7 +265,8 @@ class OnboardPlanner:
         """The next pose. candidates: optional externally supplied poses (an object with
         `position` (L, 3), `heading` (L,) and optionally `valid` (L,)) instead of sampling
         them; tie_break: (L,) added to greedy scores (jaxmripp's greedy adds 1e-5 x uniform
-        noise; pass the same to reproduce its choices)."""
+        noise; pass the same to reproduce its choices). Then `intent_message`,
+        `receive_intent` and `resolve` give the pose to fly."""
         self._require_sensed("decide")
         mode = validation.decide_mode(mode or self.mode, self.policy is not None)
         external = validation.external(candidates) if candidates is not None else None
@@ -222,7 +278,7 @@ class OnboardPlanner:
         c = self._sample(stats) if external is None else self._supplied(*external)
         features, robot_state = self.observe(c)
         safe, why = safety.check(c, self.position, self.budget_left, self.map,
-                                 self._known_robots(), self.spec, self.segment_check)
+                                 self._known_robots(), self.spec)
         done = self.step >= self.max_steps
         mask = c.valid & safe & (not done)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
@@ -231,14 +287,42 @@ class OnboardPlanner:
         if not mask.any():
             reason = ("hover: step limit reached" if done else
                       safety.hover_reason(c, why, stats, self.budget_left, self.spec))
-            return self._hover(mode, reason, scores, mask, safe, features, robot_state, c)
-        index = int(np.argmax(np.where(mask, scores, -np.inf)))
-        position, heading = c.position[index], int(c.heading[index])
-        self._command = (self.position.copy(), position.copy())
-        return Decision(
-            pose=np.append(position, HEADING_ANGLES[heading]).astype(F32), position=position,
-            heading=heading, index=index, hover=False, reason=mode, mode=mode, scores=scores,
-            mask=mask, safe=safe, features=features, robot_state=robot_state, candidates=c)
+            decision = self._hover(mode, reason, scores, mask, safe, features, robot_state, c)
+        else:
+            index = int(np.argmax(np.where(mask, scores, -np.inf)))
+            position, heading = c.position[index], int(c.heading[index])
+            self._command = (self.position.copy(), position.copy())
+            decision = Decision(
+                pose=np.append(position, HEADING_ANGLES[heading]).astype(F32),
+                position=position, heading=heading, index=index, hover=False, reason=mode,
+                mode=mode, scores=scores, mask=mask, safe=safe, features=features,
+                robot_state=robot_state, candidates=c)
+        self._pending, self.intents = decision, {}
+        return decision
+
+    def resolve(self) -> Decision:
+        """The decision to fly, after the intents heard (`receive_intent`): `decide`'s, or
+        a hold -- the current pose, `hover` True, `yields_to` and `reason` naming the
+        robot -- when the chosen flight's closest approach to the announced flight of a
+        higher-priority robot heard is <= d_c. Without `safety.intents`, `decide`'s."""
+        decision = self._require_decided("resolve")
+        self._pending = None
+        if decision.hover or not self.spec.intents:
+            return decision
+        conflict = flight.yields_to(self.id, self.budget_left, self.position,
+                                    decision.position, self.intents,
+                                    self.spec.collision_distance, self.spec.priority)
+        if conflict is None:
+            return decision
+        sender, gap = conflict
+        self._command = None  # hold: no move, nothing charged, no visit
+        reason = (f"hold: yields to robot {sender} (its announced flight comes within "
+                  f"{gap:.3g} of ours, d_c = {self.spec.collision_distance:g}, priority "
+                  f"{self.spec.priority})")
+        return dataclasses.replace(
+            decision, pose=np.append(self.position, HEADING_ANGLES[self.heading]).astype(F32),
+            position=self.position.copy(), heading=self.heading, index=-1, hover=True,
+            reason=reason, yields_to=sender)
 
     def feed_gps(self) -> None:
         """Feeds this round's pending poses into the GPs (`decide` does it first thing)."""
@@ -263,24 +347,18 @@ class OnboardPlanner:
         if self.position is None:
             raise PlannerStateError(f"{what}: call sense() with the robot's first pose first")
 
+    def _require_decided(self, what) -> Decision:
+        if self._pending is None:
+            raise PlannerStateError(f"{what}: call decide() first (once per round, after "
+                                    "sense)")
+        return self._pending
+
     def _charge(self, position: np.ndarray, heading: int) -> None:
         """Budget for the move just made: distance as flown (to where the robot really is,
         short of the command if blocked) plus the turn cost on a heading change."""
         charge = np.linalg.norm(position - self.position).astype(F32) \
             + F32(self.spec.turn_cost) * F32(heading != self.heading)
         self.budget_left = F32(max(self.budget_left - charge, F32(0.0)))
-
-    def _bumped_voxel(self, stop: np.ndarray) -> np.ndarray:
-        """The voxel ahead of where the robot stopped on its commanded segment.
-
-        jaxmripp.sim.env._fly: samples at the candidate spacing; a blocked robot stops at the
-        last free sample (or its start) and the next sample's voxel is the obstacle.
-        """
-        start, end = self._command
-        points, voxels = segment_voxels(start, end[None], self.spec.size, self.spec.shell[1])
-        stops = np.concatenate([start[None], points[0, :-1]])
-        first = int(np.argmin(np.sum(np.square(stops - stop), axis=-1)))
-        return voxels[0, first]
 
     def _known_robots(self) -> np.ndarray:
         if not self.contacts:

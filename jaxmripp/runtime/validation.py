@@ -14,27 +14,30 @@ import math
 import numpy as np
 
 from jaxmripp.runtime.errors import InvalidPoseError
+from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.grid import N_HEADINGS, OCCUPIED
 
 F32 = np.float32
 MODES = ("policy", "greedy")
-SEGMENT_CHECKS = ("exact", "sampled")
 
 
-def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, segment_check: str,
-             budget: float) -> None:
-    """The planner's constructor arguments (ValueError names the argument)."""
+def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget: float,
+             flight: str, priority: str) -> None:
+    """The planner's constructor arguments and the spec's safety rules (ValueError names
+    the argument)."""
     if mode not in MODES:
         raise ValueError(f"mode: got {mode!r}; allowed: {', '.join(MODES)}")
     if mode == "policy" and not has_policy:
         raise ValueError("mode 'policy' needs a policy (OnboardPlanner.load an export)")
     if not 0 <= int(robot_id) < team_size:
         raise ValueError(f"robot_id: got {robot_id}; allowed: 0 .. {team_size - 1}")
-    if segment_check not in SEGMENT_CHECKS:
-        raise ValueError(f"segment_check: got {segment_check!r}; allowed: "
-                         f"{', '.join(SEGMENT_CHECKS)}")
     if not (math.isfinite(budget) and budget > 0):
         raise ValueError(f"budget: got {budget}; allowed: a positive number")
+    if flight != "known_free":
+        raise ValueError(f"spec.flight: got {flight!r}; the onboard runtime flies known_free "
+                         "only")
+    if priority not in PRIORITIES:
+        raise ValueError(f"spec.priority: got {priority!r}; allowed: {', '.join(PRIORITIES)}")
 
 
 def decide_mode(mode: str, has_policy: bool) -> str:

@@ -10,8 +10,9 @@ policy.json
     layout            {"features": [...], "robot_state": [...]}: the column order of the
                       policy's inputs, which must equal this runtime's FEATURES / ROBOT_STATE
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
-                      world.size, sensor.*, candidates.*, robots.*, radio.*, gp.*,
-                      reward.utility_norm, episode.max_steps; infinities are the string "inf"
+                      world.size, sensor.*, candidates.*, robots.*, radio.*, safety.*,
+                      gp.*, reward.utility_norm, episode.max_steps; infinities are the
+                      string "inf". The runtime flies safety.flight "known_free" only.
     policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
                       central_critic)
     weights           {"file": "policy.npz", "sha256": ..., "arrays": n, "parameters": n}
@@ -38,6 +39,7 @@ import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
+from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
 FORMAT = "jaxmripp-policy"
@@ -82,6 +84,13 @@ class RuntimeSpec:
     gp: GPSpec
     utility_norm: float
     max_steps: int
+    # Safe flight (jaxmripp.spec.flight): the obstacle rule (always "known_free" here),
+    # whether the first sense is a take-off scan, whether robots exchange intents and hold,
+    # and who goes first ("id" or "budget").
+    flight: str = "known_free"
+    takeoff_scan: bool = True
+    intents: bool = True
+    priority: str = "id"
 
     @property
     def n_candidates(self) -> int:
@@ -97,6 +106,19 @@ class RuntimeSpec:
             return _convert(value, kind, f"config.{name}.{key}")
 
         gp = section("gp")
+        if "safety" not in config:
+            raise WeightsFormatError("export header: missing field config.safety (exported "
+                                     "before the safe-flight rules; re-export the policy)")
+        flight = get("safety", "flight", str)
+        if flight != "known_free":
+            raise WeightsFormatError(
+                f"export header: config.safety.flight is {flight!r}; the onboard runtime "
+                "flies known_free only (export a policy trained with safety.flight="
+                "known_free)")
+        priority = get("safety", "priority", str)
+        if priority not in PRIORITIES:
+            raise WeightsFormatError(f"export header: config.safety.priority {priority!r} is "
+                                     f"not one of {', '.join(PRIORITIES)}")
         return cls(
             size=get("world", "size", int),
             positions=get("candidates", "positions", int),
@@ -114,6 +136,10 @@ class RuntimeSpec:
                          for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
             max_steps=get("episode", "max_steps", int),
+            flight=flight,
+            takeoff_scan=get("safety", "takeoff_scan", bool),
+            intents=get("safety", "intents", bool),
+            priority=priority,
         )
 
 
@@ -140,6 +166,10 @@ def _convert(value, kind, name):
         if isinstance(value, bool) or not isinstance(value, int):
             raise WeightsFormatError(f"export header: {name} is not an integer")
         return value
+    if kind is str:
+        if not isinstance(value, str):
+            raise WeightsFormatError(f"export header: {name} is not a string")
+        return value
     if isinstance(value, str) and value in ("inf", "-inf"):
         return float(value)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
@@ -156,8 +186,10 @@ def config_header(cfg) -> dict[str, Any]:
         "candidates": dataclasses.asdict(cfg.candidates),
         "robots": {"count": cfg.robots.count, "turn_cost": cfg.robots.turn_cost,
                    "budget": list(cfg.robots.budget), "start": list(cfg.robots.start),
-                   "start_heading": cfg.robots.start_heading},
+                   "start_heading": cfg.robots.start_heading,
+                   "pad_spacing": cfg.robots.pad_spacing},
         "radio": dataclasses.asdict(cfg.radio),
+        "safety": dataclasses.asdict(cfg.safety),
         "gp": dataclasses.asdict(cfg.gp),
         "reward": {"utility_norm": cfg.reward.utility_norm},
         "episode": {"max_steps": cfg.episode.max_steps},

@@ -1,8 +1,8 @@
 """Candidate actions: the L = 4 K poses a robot may fly to next.
 
 Positions are drawn on a thin spherical shell around the robot (docs/design.md section 1),
-filtered by what the robot itself knows -- its own occupancy map, the robots it can hear
-and its remaining budget -- and compacted into a fixed number of slots, each expanded into
+filtered by what the robot itself knows -- its own occupancy map (the flight rules of
+`jaxmripp.spec.flight`), the robots it can hear and its remaining budget -- and compacted into a fixed number of slots, each expanded into
 the four headings. Everything is a pure function of its inputs and an explicit PRNG key,
 with static shapes, so `sample` can be jitted and vmapped over robots and environments;
 the turn cost and collision distance may be traced (sweeps vmap over them).
@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp.sim import geometry
+from jaxmripp.sim import flight, geometry
 from jaxmripp.config import CandidateConfig
 
 
@@ -44,6 +44,7 @@ def sample(
     others: jax.Array,
     others_known: jax.Array,
     cand: CandidateConfig,
+    flight_mode: str,
     turn_cost: float | jax.Array,
     collision_distance: float | jax.Array,
     size: int,
@@ -59,8 +60,12 @@ def sample(
       others: (N, 3) positions of all robots (the caller's own row is ignored if masked).
       others_known: (N,) bool robots this one can hear (within radio range); False for self.
       cand: static configuration (shapes: K positions, oversampling, shell).
+      flight_mode: safety.flight (jaxmripp.spec.flight): known_free offers only flights
+        through voxels mapped FREE; truncate and optimistic only avoid voxels mapped
+        OCCUPIED.
       turn_cost: () charged on a heading change.
-      collision_distance: () d_c; positions at or within it of a known robot are rejected.
+      collision_distance: () d_c; flights that come within it of a robot heard (hovering
+        where it is) are rejected.
       size: G, voxels per side.
 
     Returns:
@@ -94,10 +99,11 @@ def sample(
     # Charged distance as flown between the float32 endpoints (exactly 0 for draw 0).
     distance = jnp.linalg.norm(drawn - position, axis=-1)
 
+    line_ok = geometry.line_rule(flight_mode)
     place_ok = (
         geometry.inside_world(drawn)
-        & geometry.mapped_clear(position, drawn, occupancy, size, max_length=hi)
-        & _clear_of_robots(drawn, others, others_known, collision_distance)
+        & line_ok(position, drawn, occupancy, size, hi)
+        & flight.clear_of_robots(position, drawn, others, others_known, collision_distance)
     )
 
     # Per pose: pay the distance, plus the turn cost when the heading changes. The
@@ -129,11 +135,3 @@ def sample(
         cost=slot_cost.reshape(cand.count),
         valid=slot_valid.reshape(cand.count),
     )
-
-
-def _clear_of_robots(
-    points: jax.Array, others: jax.Array, known: jax.Array, collision_distance
-) -> jax.Array:
-    """(M, 3), (N, 3), (N,) -> (M,) True where every known robot is beyond d_c."""
-    gap2 = jnp.sum(jnp.square(points[:, None, :] - others[None, :, :]), axis=-1)
-    return jnp.all(~known[None, :] | (gap2 > collision_distance**2), axis=-1)

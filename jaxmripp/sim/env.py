@@ -4,7 +4,8 @@
 costs, reward weights) come from `jaxmripp.sim.params`; `EnvState` is a pytree of arrays
 with per-robot data stacked on a leading robot axis of size N (`jaxmripp.sim.types`).
 
-One step: actions (N,) -> straight-line moves checked against the ground truth -> ray
+One step: actions (N,) -> flights under the rules of `jaxmripp.spec.flight` (known-free
+space, intents between robots in range), checked against the ground truth -> ray
 casts from the new poses (detections, occupancy maps) -> history and radio exchange ->
 GP updates (`jaxmripp.sim.feeding`) -> new candidates -> observations and rewards.
 """
@@ -16,7 +17,9 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import comms, geometry, gp, sensing, world as worldmod
+from jaxmripp.sim import comms, flight, geometry, gp, sensing, world as worldmod
+from jaxmripp.sim.geometry import FREE, N_HEADINGS, OCCUPIED
+from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.sim.feeding import feed_gps
 from jaxmripp.sim.observation import FEATURES, ROBOT_STATE, Observation, observe  # noqa: F401
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -41,7 +44,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
     history = params.max_steps + 1
     state = EnvState(
         world=world,
-        position=jnp.broadcast_to(dyn.start, (n, 3)),
+        position=flight.pads(dyn.start, n, dyn.pad_spacing),
         heading=jnp.full((n,), params.robots.start_heading, jnp.int32),
         budget_left=jnp.full((n,), budget, jnp.float32),
         budget_initial=budget.astype(jnp.float32),
@@ -56,9 +59,10 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         comm_gp=batched(empty_gp, n),
         candidates=None,
         step=jnp.zeros((), jnp.int32),
-        metrics=Metrics(jnp.zeros((n,), jnp.int32), jnp.zeros((n,), jnp.int32),
-                        jnp.zeros((n,), jnp.float32), jnp.zeros((), jnp.int32)),
+        metrics=Metrics.zeros(n),
     )
+    if params.safety.takeoff_scan:
+        state = _takeoff_scan(state, params, dyn)
     state, _ = _after_move(key_rest, state, jnp.ones((n,), bool), params, dyn)
     return observe(state, params), state
 
@@ -76,34 +80,79 @@ def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvPara
     return observe(state, params), state, reward, state.done, info
 
 
+def _takeoff_scan(state: EnvState, params: EnvParams, dyn: DynamicParams) -> EnvState:
+    """A full turn at the start pose (jaxmripp.spec.flight): the maps and discovered windows
+    of the three other headings (the start heading's cast follows in `_after_move`),
+    charged SCAN_TURNS turns."""
+    occupancy, discovered = state.occupancy, state.discovered
+    for turn in range(1, N_HEADINGS):
+        heading = (state.heading + turn) % N_HEADINGS
+        casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
+            state.world, state.position, heading, params.sensor, params.size)
+        occupancy = jax.vmap(sensing.update_occupancy)(occupancy, casts)
+        discovered = discovered | jnp.any(casts.seen, axis=0)
+    charge = SCAN_TURNS * dyn.turn_cost
+    return state.replace(occupancy=occupancy, discovered=discovered,
+                         budget_left=jnp.maximum(state.budget_left - charge, 0.0))
+
+
 def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
-    """Flies every active robot to its chosen candidate, charges the budget and counts
-    collisions; returns (state, moving (N,) bool)."""
-    n, size = params.n_robots, params.size
+    """Flies every active robot towards its chosen candidate under the flight rules of
+    `jaxmripp.spec.flight`, charges the budget and counts collisions against the truth;
+    returns (state, moving (N,) bool)."""
+    n, size, reach = params.n_robots, params.size, params.candidates.shell[1]
     rows = jnp.arange(n)
     target = state.candidates.position[rows, actions]
     target_heading = state.candidates.heading[rows, actions]
-    moving = ~state.done & state.candidates.valid[rows, actions]
+    chosen = ~state.done & state.candidates.valid[rows, actions]
 
-    stop, blocked, obstacle = jax.vmap(_fly, in_axes=(None, 0, 0, None))(
-        state.world, state.position, target, params)
+    # One traversal per flight, checked against the truth and, with `truncate`, against
+    # the robot's map: it stops before the first voxel that is a building or (truncate) not
+    # known to be free. Maps never call a building FREE, so with `truncate` the first such
+    # voxel is always one the robot did not know: a blocked move, never a collision.
+    truncate = params.safety.flight == "truncate"
+
+    def fly(start, end, occupancy):
+        def unknown(v):
+            return occupancy.reshape(-1)[geometry.linear_index(v, size)] != FREE
+
+        def building(v):
+            return worldmod.occupied(state.world, v)
+
+        stop, hit, _, voxel = geometry.fly_until(
+            start, end, (lambda v: unknown(v) | building(v)) if truncate else building,
+            size, reach)
+        crashed = hit & building(voxel) & ~(truncate & unknown(voxel))
+        return stop, crashed, hit & ~crashed, voxel
+
+    stop, crashed, blocked, obstacle = jax.vmap(fly)(state.position, target, state.occupancy)
+    heard = comms.contacts(state.position, dyn.radio_range)
+    held = jnp.zeros((n,), bool)
+    if params.safety.intents:  # robots announce the flights they will really fly
+        held = flight.holds(state.position, stop, chosen, heard, state.budget_left,
+                            dyn.collision_distance, params.safety.priority)
+    moving = chosen & ~held
+    blocked = moving & blocked
+    crashed = moving & crashed
     position = jnp.where(moving[:, None], stop, state.position)
     flown = jnp.linalg.norm(position - state.position, axis=-1)
     turned = moving & (target_heading != state.heading)
     charge = flown + dyn.turn_cost * turned
-    # A robot collision: a move ending within d_c of another robot (moving or not).
-    separation = jnp.linalg.norm(position[:, None] - position[None], axis=-1)
-    crowded = (separation < dyn.collision_distance) & ~jnp.eye(n, dtype=bool)
+    in_range, out_of_range = flight.robot_collisions(state.position, position, moving, heard,
+                                                     dyn.collision_distance)
     m = state.metrics
     metrics = m.replace(
-        obstacle_collisions=m.obstacle_collisions + (moving & blocked),
-        robot_collisions=m.robot_collisions + (moving & jnp.any(crowded, axis=1)),
+        obstacle_collisions=m.obstacle_collisions + crashed,
+        blocked=m.blocked + blocked,
+        held=m.held + held,
+        robot_collisions_in_range=m.robot_collisions_in_range + in_range,
+        robot_collisions_out_of_range=m.robot_collisions_out_of_range + out_of_range,
         distance=m.distance + flown,
     )
-    # A blocked robot learns the voxel it bumped into, so it does not try it again.
-    bumped = jnp.where(moving & blocked, geometry.linear_index(obstacle, size), size ** 3)
+    # A robot that hit a building learns the voxel, so it does not try it again.
+    bumped = jnp.where(crashed, geometry.linear_index(obstacle, size), size ** 3)
     occupancy = jax.vmap(lambda occ, index: occ.reshape(-1).at[index].set(
-        geometry.OCCUPIED, mode="drop").reshape(occ.shape))(state.occupancy, bumped)
+        OCCUPIED, mode="drop").reshape(occ.shape))(state.occupancy, bumped)
     moved = state.replace(
         position=position,
         occupancy=occupancy,
@@ -113,19 +162,6 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
         metrics=metrics,
     )
     return moved, moving
-
-
-def _fly(world, start, end, params: EnvParams):
-    """Moves along a straight segment; stops at the last free sample before a building.
-
-    Returns the stop position, whether the move was blocked and the blocking voxel.
-    """
-    points, voxels = geometry.segment_voxels(start, end, params.size, params.candidates.shell[1])
-    hit = worldmod.occupied(world, voxels)
-    first = jnp.argmax(hit)
-    blocked = jnp.any(hit)
-    last_free = jnp.where(first == 0, start, points[jnp.maximum(first - 1, 0)])
-    return jnp.where(blocked, last_free, end), blocked, voxels[first]
 
 
 def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicParams):
@@ -162,9 +198,9 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     keys = jax.random.split(key, n)
     others_known = contact  # robots within radio range are the ones whose positions we know
     new_candidates = jax.vmap(
-        cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None))(
+        cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
         keys, state.position, state.heading, state.budget_left, state.occupancy,
-        state.position, others_known, params.candidates, dyn.turn_cost,
+        state.position, others_known, params.candidates, params.safety.flight, dyn.turn_cost,
         dyn.collision_distance, size)
     done = state.done | ~jnp.any(new_candidates.valid, axis=1) | (state.step >= params.max_steps)
     state = state.replace(candidates=new_candidates, done=done)

@@ -37,8 +37,11 @@ class Trajectory:
 class EpisodeResult:
     discovered_fraction: jax.Array  # ()
     steps: jax.Array  # () steps until every robot was done
-    obstacle_collisions: jax.Array  # ()
-    robot_collisions: jax.Array  # ()
+    obstacle_collisions: jax.Array  # () flights that entered a building (jaxmripp.spec.flight)
+    blocked: jax.Array  # () flights cut short where the map stops being known free
+    held: jax.Array  # () flights given up for a higher-priority robot's intent
+    robot_collisions_in_range: jax.Array  # () pairs closer than d_c that heard each other
+    robot_collisions_out_of_range: jax.Array  # () pairs closer than d_c out of radio range
     distance: jax.Array  # () team path length
     contacts: jax.Array  # ()
     found_at: jax.Array  # (T_targets,) int32 step each window was found: 0 at reset, -1 never
@@ -91,7 +94,10 @@ def run(key: jax.Array, params: EnvParams, dyn: DynamicParams, planner: Planner,
         discovered_fraction=envmod.discovered_fraction(final),
         steps=jnp.any(acted, axis=1).sum(),
         obstacle_collisions=m.obstacle_collisions.sum(),
-        robot_collisions=m.robot_collisions.sum(),
+        blocked=m.blocked.sum(),
+        held=m.held.sum(),
+        robot_collisions_in_range=m.robot_collisions_in_range,
+        robot_collisions_out_of_range=m.robot_collisions_out_of_range,
         distance=m.distance.sum(),
         contacts=m.contacts,
         found_at=found_at.astype(jnp.int32),

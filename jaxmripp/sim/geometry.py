@@ -1,16 +1,17 @@
-"""The JAX implementation of `jaxmripp.spec.grid`: voxel indexing and segment points.
+"""The JAX implementation of `jaxmripp.spec.grid`: voxel indexing and the traversal of a
+line of flight.
 
-Codes, headings and the segment sample count are defined in the spec and re-exported here
-for the simulation's modules.
+Codes, headings and the traversal's slot count are defined in the spec and re-exported
+here for the simulation's modules.
 """
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
-import numpy as np
 
 from jaxmripp.spec.grid import (FREE, HEADING_ANGLES, HEADING_VECTORS, N_HEADINGS,  # noqa: F401
-                                OCCUPIED, UNKNOWN, segment_samples)
+                                OCCUPIED, UNKNOWN, traversal_steps)
 
 
 def voxel_of(position: jnp.ndarray, size: int) -> jnp.ndarray:
@@ -29,28 +30,116 @@ def inside_world(position: jnp.ndarray) -> jnp.ndarray:
 
 
 
-def segment_voxels(start: jnp.ndarray, ends: jnp.ndarray, size: int,
-                   max_length: float) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """(3,), (..., 3) -> points and voxels (..., n, 3) of the spec's segment rule.
+def _rounded(x: jnp.ndarray) -> jnp.ndarray:
+    """x, materialised as a float32: XLA:CPU would otherwise fuse the product into the
+    subtraction after it (one rounding instead of two) and visit other voxels than the
+    spec (and the runtime) at exact ties. A select on NaN is not folded away."""
+    return jnp.where(jnp.isnan(x), 0.0, x)
 
-    n = segment_samples(size, max_length) points from start (excluded) to each end
-    (included), evenly spaced.
+
+def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int,
+             max_length: float) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """(3,), (3,) -> voxels (V, 3) int32, entry (V,) float32, complete () bool: the
+    traversal rule of `jaxmripp.spec.grid`, V = 3 + 2 K with K = traversal_steps(G,
+    max_length).
+
+    Steps from crossing to crossing (all axes that cross at the same t at once) and lists,
+    per step, the voxel owning the crossing point and the voxel entered after it, with the
+    t in [0, 1] where the flight enters it; then the end voxel. Unused slots repeat the
+    start voxel (entry 0), so `all` and `any` over the list need no mask. `complete` is
+    False when a segment longer than max_length had crossings left after K steps: callers
+    treat the rest of such a flight as not clear, so nothing is skipped silently.
     """
-    count = segment_samples(size, max_length)
-    t = jnp.arange(1, count + 1, dtype=jnp.float32) / count
-    points = start + t[:, None] * (ends[..., None, :] - start)
-    return points, voxel_of(points, size)
+    g = jnp.float32(size)
+    # Per-axis scalars throughout: XLA:CPU does not vectorise reductions over a trailing
+    # axis of 3.
+    s = [_rounded(start[k].astype(jnp.float32) * g) for k in range(3)]
+    e = [_rounded(end[k].astype(jnp.float32) * g) for k in range(3)]
+    d = [e[k] - s[k] for k in range(3)]
+    step = [jnp.sign(d[k]).astype(jnp.int32) for k in range(3)]
+    safe_d = [jnp.where(d[k] == 0, 1.0, d[k]) for k in range(3)]
+    first = [jnp.floor(s[k]).astype(jnp.int32) for k in range(3)]
+
+    def crossing_t(k, plane):
+        ahead = jnp.where(d[k] > 0, plane < e[k], plane > e[k]) & (d[k] != 0)
+        return jnp.where(ahead, (plane - s[k]) / safe_d[k], jnp.inf)
+
+    leave = [jnp.where(d[k] < 0, jnp.ceil(s[k]) - 1, jnp.floor(s[k])).astype(jnp.int32)
+             for k in range(3)]
+    plane = [jnp.where(d[k] > 0, jnp.floor(s[k]) + 1, jnp.ceil(s[k]) - 1) for k in range(3)]
+
+    def advance(carry, _):
+        voxel, plane, t = carry
+        t_min = jnp.minimum(jnp.minimum(t[0], t[1]), t[2])
+        live = jnp.isfinite(t_min)
+        tie = [(t[k] == t_min) & live for k in range(3)]  # axes crossing at this t step now
+        point = [voxel[k] + jnp.where(tie[k] & (d[k] > 0), step[k], 0) for k in range(3)]
+        voxel = [voxel[k] + jnp.where(tie[k], step[k], 0) for k in range(3)]
+        plane = [plane[k] + jnp.where(tie[k], step[k], 0).astype(jnp.float32) for k in range(3)]
+        t = [jnp.where(tie[k], crossing_t(k, plane[k]), t[k]) for k in range(3)]
+        out = (jnp.stack([jnp.where(live, point[k], first[k]) for k in range(3)]),
+               jnp.stack([jnp.where(live, voxel[k], first[k]) for k in range(3)]),
+               jnp.where(live, t_min, 0.0))
+        return (voxel, plane, t), out
+
+    t = [crossing_t(k, plane[k]) for k in range(3)]
+    (_, _, left), (points, afters, times) = jax.lax.scan(
+        advance, (leave, plane, t), None, length=traversal_steps(size, max_length))
+    voxels = jnp.concatenate([jnp.stack(first)[None], jnp.stack(leave)[None], points, afters,
+                              jnp.stack([jnp.floor(e[k]) for k in range(3)]).astype(
+                                  jnp.int32)[None]])
+    entry = jnp.concatenate([jnp.zeros(2), times, times, jnp.ones(1)])
+    complete = jnp.isinf(left[0]) & jnp.isinf(left[1]) & jnp.isinf(left[2])
+    return jnp.clip(voxels, 0, size - 1), entry.astype(jnp.float32), complete
 
 
-def mapped_clear(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray, size: int,
-                 max_length: float) -> jnp.ndarray:
-    """(3,), (M, 3), (G, G, G) map -> (M,) True where no segment point is mapped OCCUPIED.
+def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid: jnp.ndarray, size: int,
+                    max_length: float) -> jnp.ndarray:
+    """(3,), (M, 3), (G, G, G) codes -> (M, V) the codes of every traversed voxel, and (M,)
+    whether each list is complete (see `traverse`)."""
+    voxels, _, complete = jax.vmap(traverse, in_axes=(None, 0, None, None))(
+        start, ends, size, max_length)
+    return grid.reshape(-1)[linear_index(voxels, size)], complete
 
-    Unknown voxels count as free: the robot plans optimistically and the environment
-    checks the flight against the ground truth.
+
+def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray, size: int,
+               max_length: float) -> jnp.ndarray:
+    """(3,), (M, 3), (G, G, G) map -> (M,) True where every traversed voxel is FREE."""
+    codes, complete = traversed_codes(start, ends, occupancy, size, max_length)
+    return jnp.all(codes == FREE, axis=-1) & complete
+
+
+def not_mapped_occupied(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray,
+                        size: int, max_length: float) -> jnp.ndarray:
+    """(3,), (M, 3), (G, G, G) map -> (M,) True where no traversed voxel is OCCUPIED."""
+    codes, complete = traversed_codes(start, ends, occupancy, size, max_length)
+    return jnp.all(codes != OCCUPIED, axis=-1) & complete
+
+
+def line_rule(flight_mode: str):
+    """The map test a candidate's line of flight must pass under `safety.flight`
+    (jaxmripp.spec.flight): known_free, or for truncate / optimistic not_mapped_occupied."""
+    return known_free if flight_mode == "known_free" else not_mapped_occupied
+
+
+def fly_until(start: jnp.ndarray, end: jnp.ndarray, blocking, size: int, max_length: float):
+    """Flies start -> end until the first traversed voxel for which `blocking` ((V, 3)
+    voxels -> (V,) bool) is True.
+
+    Returns (stop (3,), hit () bool, hit_entry () float32, voxel (3,) int32): with a hit, the
+    robot stops midway through the last piece of the segment before the blocking voxel, so
+    the stop lies inside a voxel the flight entered before (the start at the latest).
     """
-    _, voxels = segment_voxels(start, ends, size, max_length)
-    return jnp.all(occupancy.reshape(-1)[linear_index(voxels, size)] != OCCUPIED, axis=-1)
+    voxels, entry, complete = traverse(start, end, size, max_length)
+    blocked = blocking(voxels)
+    # An incomplete list (a segment beyond max_length) is blocked after its last step.
+    unchecked = jnp.where(complete, jnp.inf, jnp.max(entry))
+    hit_entry = jnp.minimum(jnp.min(jnp.where(blocked, entry, jnp.inf)), unchecked)
+    hit = jnp.isfinite(hit_entry)
+    previous = jnp.max(jnp.where(entry < hit_entry, entry, 0.0))
+    t_stop = jnp.where(hit, 0.5 * (previous + hit_entry), 1.0)
+    stop = jnp.where(hit, start + t_stop * (end - start), end)
+    return stop, hit, hit_entry, voxels[jnp.argmin(jnp.where(blocked, entry, jnp.inf))]
 
 
 def pose(position: jnp.ndarray, heading: jnp.ndarray) -> jnp.ndarray:

@@ -18,7 +18,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp.config import CandidateConfig, Config, GPConfig, SensorConfig, WorldConfig
+from jaxmripp.config import (CandidateConfig, Config, GPConfig, SafetyConfig, SensorConfig,
+                             WorldConfig)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +39,7 @@ class EnvParams:
     robots: StaticRobots
     sensor: SensorConfig
     radio: StaticRadio
+    safety: SafetyConfig
     candidates: CandidateConfig
     gp: GPConfig
     max_steps: int  # T_max; history length T_max + 1
@@ -46,7 +48,7 @@ class EnvParams:
     def from_config(cls, cfg: Config) -> "EnvParams":
         return cls(world=cfg.world,
                    robots=StaticRobots(cfg.robots.count, cfg.robots.start_heading),
-                   sensor=cfg.sensor, radio=StaticRadio(cfg.radio.relay),
+                   sensor=cfg.sensor, radio=StaticRadio(cfg.radio.relay), safety=cfg.safety,
                    candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps)
 
     @property
@@ -72,12 +74,14 @@ class DynamicParams:
     leading axes). All float32.
 
     radio_range:        ()   rho, inclusive; inf = global communication, 0 = none
-    collision_distance: ()   d_c: candidates within it of a heard robot are rejected, and
-                             a move ending within it of another robot counts a collision
+    collision_distance: ()   d_c: flights that come within it of a heard robot are not
+                             offered, and flights closer than it count a robot collision
+                             (jaxmripp.spec.flight)
     budget:             (2,) team budget range (lo, hi); reset draws B uniformly in it and
                              gives each of the N robots B / N
     turn_cost:          ()   budget charged when a move changes the heading
-    start:              (3,) every robot's start position
+    start:              (3,) the first take-off pad
+    pad_spacing:        ()   the distance between take-off pads (jaxmripp.spec.flight)
     alpha, beta, gamma: ()   reward weights of r_e (utility GP trace drop), r_u (new
                              windows) and r_c (communication GP trace drop)
     utility_norm:       ()   windows seen per pose are divided by it before entering a GP
@@ -88,6 +92,7 @@ class DynamicParams:
     budget: jax.Array
     turn_cost: jax.Array
     start: jax.Array
+    pad_spacing: jax.Array
     alpha: jax.Array
     beta: jax.Array
     gamma: jax.Array
@@ -103,7 +108,7 @@ class DynamicParams:
         return cls.create(
             radio_range=cfg.radio.range, collision_distance=cfg.radio.collision_distance,
             budget=cfg.robots.budget, turn_cost=cfg.robots.turn_cost, start=cfg.robots.start,
-            alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
+            pad_spacing=cfg.robots.pad_spacing, alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
             utility_norm=cfg.reward.utility_norm)
 
     def with_values(self, **values) -> "DynamicParams":

@@ -8,7 +8,8 @@ stopped by buildings. Buildings are boxes on the ground, so a ray's first hit de
 on the columns its horizontal projection crosses, and all rays of one azimuth cross the
 same columns (listed once, statically, nearest first). Per cast that is one height lookup
 per (azimuth, column), a slope threshold per column, and a minimum over columns per ray.
-The view is the static set of voxels whose centres lie in the field of view and range; a
+The view is the static set of voxels whose centres lie in the field of view and range, and
+the camera's own voxel (a robot's own voxel is always mapped: FREE, since it is there); a
 view voxel is observed iff the ray nearest its direction reaches its centre, or for a
 building voxel comes within `_SURFACE` of it. Codes are copied from the truth, so a map
 never contradicts the world, OCCUPIED never turns FREE and what is behind a wall stays
@@ -80,10 +81,12 @@ class _Camera(NamedTuple):
 
 
 def _in_raycast_view(a, b, c, tan, reach):
-    """Camera-frame offsets (forward, right, up) -> centre inside the FOV and range."""
+    """Camera-frame offsets (forward, right, up) -> centre inside the FOV and range, or the
+    camera's own voxel (always observed: the robot is in it, so it maps FREE)."""
     edge = a * tan + _EPS
     inside = (abs(b) <= edge) & (abs(c) <= edge)
-    return (a >= 1) & inside & (a * a + b * b + c * c <= reach * reach + _EPS)
+    own = (a == 0) & (b == 0) & (c == 0)
+    return ((a >= 1) & inside & (a * a + b * b + c * c <= reach * reach + _EPS)) | own
 
 
 def _in_frustum(a, b, c, depth, xp=jnp):
@@ -133,7 +136,8 @@ def _camera(sensor: SensorConfig, size: int) -> _Camera:
     slope = (u[None, :] / np.sqrt(1 + u * u)[:, None]).astype(np.float32)
     view = _view_table(lambda a, b, c: _in_raycast_view(a, b, c, tan, reach), math.ceil(reach) + 1)
     a, b, c = view
-    cell = lambda x: np.clip(np.floor((x / a / tan + 1) * n / 2), 0, n - 1).astype(np.int32)
+    ahead = np.maximum(a, 1)  # the own voxel (a = 0) takes the central ray; any would do
+    cell = lambda x: np.clip(np.floor((x / ahead / tan + 1) * n / 2), 0, n - 1).astype(np.int32)
     distance = np.sqrt(a * a + b * b + c * c).astype(np.float32)
     return _Camera(reach, tan, n, column, s_in, s_out, direction.astype(np.float32), slope,
                    view, cell(b) * n + cell(c), distance)

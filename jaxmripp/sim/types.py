@@ -13,10 +13,21 @@ from jaxmripp.sim import gp, world as worldmod
 
 @struct.dataclass
 class Metrics:
-    obstacle_collisions: jax.Array  # (N,) int32 moves stopped by a building
-    robot_collisions: jax.Array  # (N,) int32 moves ending within d_c of another robot
+    """Counts summed over the episode's steps (the rules of jaxmripp.spec.flight)."""
+
+    obstacle_collisions: jax.Array  # (N,) int32 flights that entered a building (truth)
+    blocked: jax.Array  # (N,) int32 flights cut short where the map stops being known free
+    held: jax.Array  # (N,) int32 chosen flights given up for a higher-priority intent
+    robot_collisions_in_range: jax.Array  # () int32 pairs closer than d_c, in radio range
+    robot_collisions_out_of_range: jax.Array  # () int32 ... out of radio range
     distance: jax.Array  # (N,) float32 path length flown
     contacts: jax.Array  # () int32 robot pairs in radio contact, summed over steps
+
+    @classmethod
+    def zeros(cls, n: int) -> "Metrics":
+        count = jnp.zeros((n,), jnp.int32)
+        none = jnp.zeros((), jnp.int32)
+        return cls(count, count, count, none, none, jnp.zeros((n,), jnp.float32), none)
 
 
 @struct.dataclass

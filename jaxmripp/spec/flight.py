@@ -1,0 +1,52 @@
+"""Safe flight: what a robot may fly, how robots keep apart, and what counts as a collision.
+
+Both sides implement these rules: the JAX environment (`jaxmripp.sim.flight`, applied by
+`jaxmripp.sim.env` for every planner alike) and the onboard runtime
+(`jaxmripp.runtime.flight`, applied by its safety filter whatever scores the candidates).
+
+Obstacles (`safety.flight`)
+    known_free   a candidate is offered only if every voxel its line of flight traverses
+                 (`jaxmripp.spec.grid`) is FREE in the robot's own map. Maps copy codes from
+                 the truth, so such a flight never enters a building. A robot's own voxel is
+                 FREE in its map (it is there).
+    truncate     candidates avoid voxels mapped OCCUPIED only; the robot flies the known-free
+                 part of the segment and stops midway through the last piece before the
+                 first voxel its map does not know to be FREE (a `blocked` move, charged as
+                 flown). Intents announce the part that will be flown.
+    optimistic   the unsafe reference: unknown voxels count as free. Only for measuring what
+                 safety costs; flights are checked against the truth and stop before a
+                 building, which counts an obstacle collision.
+    Take-off scan (`safety.takeoff_scan`, off by default): before the first decision every
+    robot turns a full circle at its start pose, sensing at each of the four headings, and
+    is charged four turns.
+
+Closest approach of two flights
+    Robots fly their segments at one common speed, starting together: robot A at a0 -> a1
+    is at a0 + u_A min(t, |a1 - a0|) at time t (u_A its unit direction; a hovering robot
+    has a zero-length segment). The closest approach of A and B is the minimum of their
+    distance over t >= 0: a clamped quadratic on [0, min(L_A, L_B)] and on
+    [min(L_A, L_B), max(L_A, L_B)], where the shorter flight hovers at its end.
+
+Robots in radio range
+    A candidate is offered only if its flight's closest approach to every robot heard this
+    round, hovering where it was heard, exceeds d_c. Robots then choose at once and announce
+    the chosen segment (the intent) to the robots in range (`safety.intents`). Priority
+    (`safety.priority`): `id` -- the lower id first; `budget` -- more budget left first, then
+    the lower id. A robot whose chosen flight comes within d_c (closest approach <= d_c) of
+    the announced flight of a higher-priority robot in range *holds*: it stays where it is
+    this step, is charged nothing, and chooses again next step. One round suffices: the
+    higher-priority robot either flies what it announced or holds itself, and its flight was
+    kept clear of the holding robot's position by the candidate rule above.
+
+Collisions (the environment's ground truth)
+    obstacle: a flight that enters a voxel occupied in the truth; it stops before it.
+    robot: a pair of robots, at least one of them flying, whose actual flights come closer
+    than d_c (closest approach < d_c) -- counted once per pair and step, as `in range` when
+    the two were in radio range when they decided and `out of range` otherwise.
+    Robots start on take-off pads `robots.pad_spacing` apart (more than d_c) in the world's
+    y = start_y face: robot i at start + spacing (i mod m, 0, i div m), m = ceil(sqrt(N)).
+"""
+
+FLIGHT_MODES = ("known_free", "truncate", "optimistic")
+PRIORITIES = ("id", "budget")
+SCAN_TURNS = 4  # a full circle through the four headings, back to the start heading
