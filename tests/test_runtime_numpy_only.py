@@ -96,17 +96,15 @@ for t in range(ROUNDS):
             flat = np.concatenate([(box[:, 0] * g + box[:, 1]) * g + box[:, 2], [g ** 3] * 5])
             p.sense(position[i], heading[i], flat, np.append(codes, [0] * 5),
                     int(rng.integers(0, 4)))
-    outbox = [p.message() for p in planners]
-    for i, p in enumerate(planners):
-        for j, data in enumerate(outbox):
-            if j != i and np.linalg.norm(position[i] - position[j]) <= spec.radio_range:
-                assert p.receive(data).sender == j
+    def radio(outbox, receive):  # every message reaches the robots in range
+        for i, p in enumerate(planners):
+            for j, data in enumerate(outbox):
+                if j != i and np.linalg.norm(position[i] - position[j]) <= spec.radio_range:
+                    assert receive(p, data).sender == j
+
+    radio([p.message() for p in planners], type(planners[0]).receive)
     chosen = [p.decide() for p in planners]
-    intents = [p.intent_message() for p in planners]
-    for i, p in enumerate(planners):
-        for j, data in enumerate(intents):
-            if j != i and np.linalg.norm(position[i] - position[j]) <= spec.radio_range:
-                assert p.receive_intent(data).sender == j
+    radio([p.intent_message() for p in planners], type(planners[0]).receive_intent)
     decisions = [p.resolve() for p in planners]
     for i, d in enumerate(decisions):
         assert d.mode == "policy" and np.all(np.isfinite(d.pose)), d
