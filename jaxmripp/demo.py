@@ -7,11 +7,13 @@ The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.worl
 `jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. The robots start on
 their take-off pads (`jaxmripp.spec.flight`) and, with `safety.takeoff_scan`, first sense
 at all four headings. Each round every robot senses, broadcasts its message to the robots
-within radio range (JSON bytes, as on a real radio), reads theirs and decides, then
-broadcasts its intent, reads theirs and resolves (a lower-priority robot whose flight
-would come within d_c of another's holds); the demo then flies each robot along its line
-of flight, stopping before a building (the traversal rule, as the env does), and prints
-the progress. It ends when every robot hovers or after the episode's step limit.
+within radio range (JSON bytes, as on a real radio) and reads theirs; with
+`radio.share_maps` it then broadcasts its map deltas (`jaxmripp.spec.sharing`) and merges
+those sent to it; it decides, then broadcasts its intent, reads theirs and resolves (a
+lower-priority robot whose flight would come within d_c of another's holds); the demo
+then flies each robot along its line of flight, stopping before a building (the
+traversal rule, as the env does), and prints the progress with the mean size of the
+round's map messages. It ends when every robot hovers or after the episode's step limit.
 """
 
 from __future__ import annotations
@@ -121,7 +123,7 @@ def main(argv: list[str] | None = None) -> float:
     if not args.quiet:
         print(f"{n} robots, {mode} planners, G = {size}, {int(valid.sum())} windows, "
               f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")
-    decide_seconds = []
+    decide_seconds, map_bytes = [], []
     for step in range(steps + 1):
         # The take-off scan: the first sense sees the other three headings as well.
         turns = range(N_HEADINGS) if step == 0 and spec.takeoff_scan else (0,)
@@ -137,6 +139,11 @@ def main(argv: list[str] | None = None) -> float:
                           int(seen[i].sum()), blocked=bool(blocked[i]))
         exchange([planner.message() for planner in planners], position, spec.radio_range,
                  lambda i, data: planners[i].receive(data))
+        if spec.share_maps:
+            outbox = [planner.map_message() for planner in planners]
+            exchange(outbox, position, spec.radio_range,
+                     lambda i, data: planners[i].receive_map(data))
+            map_bytes.append([len(data) for data in outbox])
         for planner in planners:
             planner.decide()
         exchange([planner.intent_message() for planner in planners], position,
@@ -150,7 +157,8 @@ def main(argv: list[str] | None = None) -> float:
                             f"({d.position[0]:.2f},{d.position[1]:.2f},{d.position[2]:.2f}) "
                             f"{HEADING_NAMES[d.heading]}")
                 for i, d in enumerate(decisions))
-            print(f"step {step:3d}  found {percent:5.1f}%  {moves}")
+            sizes = f"map {np.mean(map_bytes[-1]):6.0f} B/msg  " if spec.share_maps else ""
+            print(f"step {step:3d}  found {percent:5.1f}%  {sizes}{moves}")
         if all(d.hover for d in decisions):
             if not args.quiet:
                 for i, d in enumerate(decisions):
@@ -165,6 +173,11 @@ def main(argv: list[str] | None = None) -> float:
     print(f"found {percent:.1f}% of {int(valid.sum())} windows in {step} steps "
           f"(median {1e3 * float(np.median(decide_seconds)):.2f} ms per robot decision, "
           f"budget left {sum(float(p.budget_left) for p in planners):.3f} of {args.budget:g})")
+    if spec.share_maps:
+        sizes = np.asarray(map_bytes, float)
+        later = sizes[1:].mean() if len(sizes) > 1 else 0.0
+        print(f"map messages: mean {sizes.mean():.0f} bytes per robot per step (first step "
+              f"{sizes[0].mean():.0f}, later steps {later:.0f}, largest {sizes.max():.0f})")
     return percent
 
 

@@ -172,3 +172,42 @@ def test_vmaps_over_envs_and_is_traced_once():
         for e in range(5):
             np.testing.assert_array_equal(
                 out[e], reference_exchange(know[e], contacts(positions[e], 0.3), relay=True))
+
+
+# ---------------------------------------------------------------------------------------
+# Shared maps (jaxmripp.spec.sharing)
+
+share_maps = jax.jit(comms.share_maps, static_argnames="relay")
+
+
+def consistent_maps(rng, n, size):
+    """n maps that each know a random part of one random truth (FREE / OCCUPIED)."""
+    truth = rng.choice([0, 2], size=(size, size, size)).astype(np.int8)
+    known = rng.random((n, size, size, size)) < 0.3
+    maps = np.where(known, truth[None], 1).astype(np.int8)
+    column_top = lambda m: np.max(np.where(m == 2, np.arange(size) + 1, 0), axis=-1)
+    return truth, maps, np.stack([column_top(m) for m in maps]).astype(np.int8), column_top
+
+
+@pytest.mark.parametrize("relay", [False, True])
+def test_shared_maps_are_the_union_of_what_each_robot_hears(relay):
+    rng = np.random.default_rng(0)
+    truth, maps, tops, column_top = consistent_maps(rng, 3, 6)
+    contact = np.asarray(contacts(CHAIN, 0.3))  # 0-1 and 1-2 linked, 0-2 not
+    merged, merged_tops = (np.asarray(x) for x in share_maps(maps, tops, contact, relay=relay))
+    for i in range(3):
+        sources = [i] + [k for k in range(3) if contact[i, k] or (relay and k != i)]
+        known = np.any(maps[sources] != 1, axis=0)
+        np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
+        np.testing.assert_array_equal(merged_tops[i], column_top(merged[i]))
+    # The chain's ends hear each other's maps only through the middle robot (relay).
+    assert relay == bool(np.any((maps[2] != 1) & (maps[0] == 1) & (merged[0] != 1)
+                                & (maps[1] == 1)))
+
+
+def test_shared_maps_without_contact_change_nothing():
+    rng = np.random.default_rng(1)
+    _, maps, tops, _ = consistent_maps(rng, 3, 5)
+    merged, merged_tops = share_maps(maps, tops, np.zeros((3, 3), bool), relay=False)
+    np.testing.assert_array_equal(np.asarray(merged), maps)
+    np.testing.assert_array_equal(np.asarray(merged_tops), tops)

@@ -53,7 +53,7 @@ def test_weights_of_another_input_width_are_refused(flat_params):
     _, flat = flat_params
     head = export.header(CFG)
     narrow = dict(flat, **{"embed/kernel": flat["embed/kernel"][:-1]})
-    with pytest.raises(export.ExportError, match="embed reads 15 inputs; .* gives 16"):
+    with pytest.raises(export.ExportError, match="embed reads 20 inputs; .* gives 21"):
         export.check_layout(head, narrow)
     wide = dict(flat, **{"state_embed/kernel": np.zeros((10, CFG.policy.width), np.float32)})
     with pytest.raises(export.ExportError, match="state_embed reads 10 inputs"):

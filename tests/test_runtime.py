@@ -1,7 +1,8 @@
 """The NumPy onboard runtime: export format, ports of the GP / candidates, radio messages,
 safety filter and bad input. The safe-flight rules (traversal, closest approach, take-off
-scan, intents and holds, protocol 2) are in tests/test_runtime_flight.py; whole-episode
-parity with the JAX env lives in tests/test_runtime_episode.py (env candidates) and
+scan, intents and holds, budget and intent messages) are in tests/test_runtime_flight.py,
+shared maps and the view gain in tests/test_runtime_sharing.py; whole-episode parity with
+the JAX env lives in tests/test_runtime_episode.py (env candidates) and
 tests/test_runtime_parity.py (the runtime's own), the NumPy-only guarantee in
 tests/test_runtime_numpy_only.py and the exporter in tests/test_export.py."""
 
@@ -76,7 +77,9 @@ def sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=0):
 # env's observe in tests/test_runtime_parity.py.
 EXPECTED_FEATURES = [
     "dx", "dy", "dz", "x", "y", "z", "heading_0", "heading_1", "heading_2", "heading_3",
-    "utility_mean", "utility_std", "comm_mean", "comm_std", "cost", "budget_after"]
+    "utility_mean", "utility_std", "comm_mean", "comm_std", "cost", "budget_after",
+    "view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost",
+    "peer_distance"]
 EXPECTED_ROBOT_STATE = [
     "x", "y", "z", "heading_0", "heading_1", "heading_2", "heading_3", "budget_left", "step"]
 
@@ -101,8 +104,12 @@ def test_layout_and_header_match_the_written_layout(exported):
     assert c["robots"]["turn_cost"] == CFG.robots.turn_cost
     assert c["safety"] == {"flight": CFG.safety.flight, "takeoff_scan": CFG.safety.takeoff_scan,
                            "intents": CFG.safety.intents, "priority": CFG.safety.priority}
+    assert c["radio"]["share_maps"] is CFG.radio.share_maps is True
+    assert c["sensor"]["fov_deg"] == CFG.sensor.fov_deg
     spec = spec_of()
     assert (spec.size, spec.n_candidates, spec.gp.capacity) == (30, CFG.candidates.count, 16)
+    assert (spec.share_maps, spec.fov_deg, spec.sensor_range) == (
+        True, CFG.sensor.fov_deg, CFG.sensor.range)
 
 
 def test_export_round_trip_is_exact_and_hashed(exported):
@@ -362,8 +369,8 @@ def test_newer_protocol_and_malformed_messages_are_refused_without_side_effects(
     sense_free(b)
     record = json.loads(a.message())
     newer = dict(record, protocol=messages.PROTOCOL_VERSION + 1)
-    with pytest.raises(ProtocolVersionError, match="protocol 3; this runtime speaks protocol "
-                                                   "2 only"):
+    with pytest.raises(ProtocolVersionError, match="protocol 4; this runtime speaks protocol "
+                                                   "3 only"):
         b.receive(json.dumps(newer).encode())
     bad = [b"\x00garbage", json.dumps(dict(record, poses=[[0.1, 0.2, float("nan"), 0.0]])),
            json.dumps(dict(record, sender=7)), json.dumps(dict(record, utilities=[])),

@@ -3,12 +3,13 @@
 Each robot's `OnboardPlanner` learns only what a real robot would: its own camera (the
 env's `sensing.cast` for that robot at its pose; at all four headings in the first round,
 the take-off scan), the radio messages of the robots within range (built by the runtime,
-delivered along the env's single-hop contacts: the first broadcast, then the intents) and
-whether its last move was blocked. Candidate poses are the env's (`state.candidates` of
-that robot), so the two sides choose among the same poses; everything else -- map, budget,
-GPs, features, the decision, the safety filter and the hold rule of
-`jaxmripp.spec.flight` -- the runtime computes itself. The env applies its own hold rule to
-the chosen actions; the robots it holds must be the ones whose `resolve` held.
+delivered along the env's single-hop contacts: the first broadcast, the map deltas of
+`radio.share_maps`, then the intents) and whether its last move was blocked. Candidate
+poses are the env's (`state.candidates` of that robot), so the two sides choose among the
+same poses; everything else -- map, building tops, budget, GPs, features, the decision,
+the safety filter and the hold rule of `jaxmripp.spec.flight` -- the runtime computes
+itself. The env applies its own hold rule to the chosen actions; the robots it holds must
+be the ones whose `resolve` held.
 
 Greedy ties. `baselines.greedy_planner` breaks ties with 1e-5 x uniform noise drawn from the
 step's key. Exact ties are structural, not rare: two headings at the same angle from every
@@ -35,7 +36,8 @@ from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
-from jaxmripp.spec.grid import FREE, N_HEADINGS
+from jaxmripp.spec.grid import FREE, N_HEADINGS, UNKNOWN
+from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_flight import interval_reference
 
@@ -45,6 +47,7 @@ CFG = config.load(REPO / "configs/smoke.yaml", [
 KAPPA, LAM = 1.0, 0.5  # both GPs enter the score
 UTILITY_MEAN, UTILITY_STD, COMM_MEAN = (baselines.UTILITY_MEAN, baselines.UTILITY_STD,
                                         baselines.COMM_MEAN)
+VIEW_GAIN = [FEATURES.index("view_unknown"), FEATURES.index("view_facade")]
 
 
 # Robots close together and a large d_c: flights conflict, and robots hold.
@@ -91,7 +94,8 @@ def jax_greedy_episode(sim, seed):
 
 
 def sense_all(sim, state, planners, blocked, t):
-    """Every robot senses (the take-off scan in round 0); maps and budgets must be the env's."""
+    """Every robot senses (the take-off scan in round 0); budgets must be the env's (maps
+    too, after the map exchange: `share_maps`)."""
     heading = np.asarray(state.heading)
     scan = t == 0 and sim.spec.takeoff_scan
     # The env's order: the other three headings, then the start heading's cast.
@@ -105,15 +109,32 @@ def sense_all(sim, state, planners, blocked, t):
                       np.concatenate([c.voxels[i] for c in casts]),
                       np.concatenate([c.values[i] for c in casts]),
                       int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]))
-        np.testing.assert_array_equal(planner.map.grid, np.asarray(state.occupancy[i]),
-                                      err_msg=f"step {t} robot {i}: maps differ")
         assert planner.budget_left == pytest.approx(float(state.budget_left[i]), abs=1e-6)
 
 
-def runtime_episode(sim, seed, planners, decide):
+def share_maps(state, planners, contact, t, traffic=None):
+    """With `radio.share_maps` every robot sends its map deltas along the contacts and
+    merges those sent to it; then maps and building tops must be the env's (its merge).
+    traffic, if given, gets (round, sender, receiver, delta voxels, voxels the sender
+    knows) per delivered delta."""
+    if planners[0].spec.share_maps:
+        outbox = [planner.map_message() for planner in planners]
+        known = [int(np.sum(p.map.codes != UNKNOWN)) for p in planners]
+        for i, j in zip(*np.nonzero(contact)):
+            message = planners[i].receive_map(outbox[j])
+            if traffic is not None:
+                traffic.append((t, j, i, len(message.delta_for(i).voxels), known[j]))
+    for i, planner in enumerate(planners):
+        np.testing.assert_array_equal(planner.map.grid, np.asarray(state.occupancy[i]),
+                                      err_msg=f"step {t} robot {i}: maps differ")
+        np.testing.assert_array_equal(planner.map.top, np.asarray(state.building_top[i]),
+                                      err_msg=f"step {t} robot {i}: building tops differ")
+
+
+def runtime_episode(sim, seed, planners, decide, traffic=None):
     """Steps the env with the planners' decisions. decide(t, i, planner, obs, candidates,
     key_act) -> Decision. Returns per step (obs, state, decisions, resolved); checks that
-    the robots the env holds are those whose `resolve` held."""
+    the robots the env holds are those whose `resolve` held (and `share_maps`' checks)."""
     key_reset, keys = keys_of(seed, sim.params.max_steps)
     obs, state = sim.reset(key_reset)
     n = sim.params.n_robots
@@ -125,6 +146,7 @@ def runtime_episode(sim, seed, planners, decide):
         outbox = [planner.message() for planner in planners]
         for i, j in zip(*np.nonzero(contact)):
             planners[i].receive(outbox[j])
+        share_maps(state, planners, contact, t, traffic)
         o = jax.tree.map(np.asarray, obs)
         c = jax.tree.map(np.asarray, state.candidates)
         decisions = []
@@ -135,6 +157,9 @@ def runtime_episode(sim, seed, planners, decide):
             # terms updated by different algorithms on each side: relative 2e-4 allowed.
             np.testing.assert_allclose(d.features, o.features[i], atol=1e-5, rtol=2e-4,
                                        err_msg=f"step {t} robot {i}: features differ")
+            # The view gain is integer sums and one float32 scaling on both sides.
+            np.testing.assert_array_equal(d.features[:, VIEW_GAIN], o.features[i][:, VIEW_GAIN],
+                                          err_msg=f"step {t} robot {i}: view gain differs")
             np.testing.assert_allclose(d.robot_state, o.robot_state[i], atol=1e-6)
             decisions.append(d)
         intents = [planner.intent_message() for planner in planners]
@@ -180,7 +205,20 @@ def test_runtime_team_follows_the_jax_greedy_trajectory(sim, seed):
     reference = jax_greedy_episode(sim, seed)
     budget = float(reference[0][1].budget_initial)
     planners, decide = greedy_runtime(sim, budget)
-    ours = runtime_episode(sim, seed, planners, decide)
+    traffic = []
+    ours = runtime_episode(sim, seed, planners, decide, traffic)
+    # Maps were shared (and equal the env's every round, in `share_maps`); after a pair's
+    # first contact a delta carries less than the sender's whole map.
+    assert sim.spec.share_maps
+    first, later = set(), []
+    for t, j, i, delta, known in traffic:
+        if (j, i) in first:
+            later.append(delta / known)
+            assert delta < known, f"step {t}: robot {j} sent robot {i} its whole map again"
+        first.add((j, i))
+    assert len(later) >= 5
+    print(f"seed {seed}: {len(traffic)} deltas, after the first contact a mean "
+          f"{np.mean(later):.1%} of the sender's known voxels")
 
     margins, moves = [], 0
     _, key_steps = keys_of(seed, sim.params.max_steps)

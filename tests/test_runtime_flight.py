@@ -1,7 +1,7 @@
 """The safe-flight rules of `jaxmripp.spec.flight` in the NumPy runtime: the traversal of a
 line of flight (`jaxmripp.runtime.mapping.traverse`), closest approach and the hold rule
-(`jaxmripp.runtime.flight`), the take-off scan, the own voxel, protocol 2 and the intent
-round of `OnboardPlanner`.
+(`jaxmripp.runtime.flight`), the take-off scan, the own voxel, the budget and intent of
+the protocol and the intent round of `OnboardPlanner`.
 
 References here are written independently of both implementations: an exact interval test
 per voxel and dense sampling for the traversal, dense sampling in time for the closest
@@ -321,16 +321,16 @@ def test_priority_orders_like_jax():
 
 
 # ---------------------------------------------------------------------------------------
-# Protocol 2
+# Budget and intent in the protocol (from version 2 on)
 
 
-def test_messages_v2_round_trip_budget_and_intent_exactly():
+def test_messages_round_trip_budget_and_intent_exactly():
     message = messages.Message(
         sender=1, position=F32([0.1, 0.2, 0.3]), heading=2, start=0,
         poses=F32([[0.1, 0.2, 0.3, math.pi]]), utilities=F32([0.25]),
         budget_left=F32(1 / 3), intent=F32([0.3, 0.2, 1 / 7]))
     back = messages.decode(messages.encode(message))
-    assert back.protocol == messages.PROTOCOL_VERSION == 2
+    assert back.protocol == messages.PROTOCOL_VERSION == 3
     assert back.budget_left == F32(1 / 3) and back.budget_left.dtype == F32
     np.testing.assert_array_equal(back.intent, message.intent)
     hover = messages.decode(messages.encode(dataclasses.replace(message, intent=None)))
@@ -339,15 +339,15 @@ def test_messages_v2_round_trip_budget_and_intent_exactly():
         is None
 
 
-def test_version_1_message_gets_one_clear_error():
+def test_older_version_messages_get_one_clear_error():
     record = json.loads(messages.encode(messages.Message(
         1, F32([0.1, 0.2, 0.3]), 0, 0, np.zeros((0, 4), F32), np.zeros(0, F32), F32(1.0))))
-    old = {k: v for k, v in record.items() if k not in ("budget_left", "intent")}
-    old["protocol"] = 1
-    with pytest.raises(ProtocolVersionError, match="uses protocol 1; this runtime speaks "
-                                                   "protocol 2 only") as err:
-        messages.decode(json.dumps(old))
-    assert "\n" not in str(err.value)
+    version_1 = {k: v for k, v in record.items() if k not in ("budget_left", "intent")}
+    for old in (dict(version_1, protocol=1), dict(record, protocol=2)):
+        with pytest.raises(ProtocolVersionError, match=f"uses protocol {old['protocol']}; "
+                           "this runtime speaks protocol 3 only") as err:
+            messages.decode(json.dumps(old))
+        assert "\n" not in str(err.value)
     bad = [dict(record, budget_left=-1.0), dict(record, budget_left="x"),
            {k: v for k, v in record.items() if k != "budget_left"},
            {k: v for k, v in record.items() if k != "intent"},

@@ -103,6 +103,8 @@ for t in range(ROUNDS):
                     assert receive(p, data).sender == j
 
     radio([p.message() for p in planners], type(planners[0]).receive)
+    assert spec.share_maps
+    radio([p.map_message() for p in planners], type(planners[0]).receive_map)
     chosen = [p.decide() for p in planners]
     radio([p.intent_message() for p in planners], type(planners[0]).receive_intent)
     decisions = [p.resolve() for p in planners]
@@ -123,6 +125,7 @@ assert moves >= N * (ROUNDS - 1), (moves, hovers)
 assert all(p.budget_left < 1.0 for p in planners)
 assert len(messages.decode(planners[0].message()).poses) >= 2
 assert sum(len(h) for h in planners[0].peer_pose.values()) > 0
+assert planners[0].last_map_message_bytes > 0 and planners[0].map.top.max() > 0
 loaded = sorted(m for m in sys.modules if m.split(".")[0] in BLOCKED)
 assert not loaded, loaded
 print("FLEW", moves, "moves", hovers, "hovers")

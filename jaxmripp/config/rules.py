@@ -48,7 +48,7 @@ def _pair(rule):
 _POSITIVE = _range(0, lo_open=True)
 _NONNEG = _range(0)
 _UNIT = _range(0, 1)
-PLANNERS = ("policy", "random", "greedy", "coordinated", "mcts", "oracle")
+PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "mcts", "oracle")
 
 RULES: dict[str, tuple] = {
     "world.size": _range(10, 256),
@@ -130,6 +130,7 @@ RULES: dict[str, tuple] = {
     "eval.coordinated_kappa": _NONNEG,
     "eval.coordinated_lambda": _NONNEG,
     "eval.coordinated_mu": _NONNEG,
+    "eval.nbv_facade": _NONNEG,
     "eval.mcts_simulations": _range(1, 4096),
     "eval.mcts_depth": _range(1, 64),
     "eval.mcts_considered": _range(1, 512),

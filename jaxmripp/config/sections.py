@@ -62,6 +62,7 @@ class SensorConfig:
 class RadioConfig:
     range: float = 0.3  # rho; .inf for global communication
     relay: bool = False  # forward everything known (multi-hop) instead of single hop
+    share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
     collision_distance: float = 0.05  # d_c
 
 
@@ -118,6 +119,8 @@ class PolicyConfig:
     layers: int = 1
     ff_mult: int = 4
     comm_features: bool = True  # False: ablation without communication-GP inputs
+    view_features: bool = True  # False: ablation without the view-gain inputs
+    intent_features: bool = True  # False: ablation without the peer-distance input
 
 
 @dataclasses.dataclass(frozen=True)
@@ -166,6 +169,7 @@ class EvalConfig:
     coordinated_kappa: float = 0.3
     coordinated_lambda: float = 0.0
     coordinated_mu: float = 0.3
+    nbv_facade: float = 1.0  # weight of unknown facade voxels in the nbv score
     mcts_simulations: int = 16
     mcts_depth: int = 2
     mcts_considered: int = 4

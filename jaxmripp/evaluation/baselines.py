@@ -16,13 +16,15 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import comms, geometry, gp, sensing
+from jaxmripp.sim import comms, geometry, gp, sensing, view
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.observation import FEATURES, Observation
 
 UTILITY_MEAN = FEATURES.index("utility_mean")
 UTILITY_STD = FEATURES.index("utility_std")
 COMM_MEAN = FEATURES.index("comm_mean")
+UNKNOWN_PER_COST = FEATURES.index("view_unknown_per_cost")
+FACADE_PER_COST = FEATURES.index("view_facade_per_cost")
 
 
 def _no_memory(n_robots: int) -> jax.Array:
@@ -158,5 +160,55 @@ def oracle_planner(params, name: str = "oracle") -> Planner:
             return covered, a
 
         return memory, _sequential(choose, state.discovered, n)
+
+    return Planner(name, _no_memory, act)
+
+
+def nbv_scores(features: jax.Array, facade_weight: float) -> jax.Array:
+    """Next-best-view score: view gain per unit of flight cost (`jaxmripp.spec.view`),
+    unknown voxels in view plus `facade_weight` times the unknown facade voxels."""
+    return features[..., UNKNOWN_PER_COST] + facade_weight * features[..., FACADE_PER_COST]
+
+
+def nbv_planner(facade_weight: float = 1.0, name: str = "nbv") -> Planner:
+    """Next-best view: every robot takes its candidate with the largest `nbv_scores` on
+    its own map (the team's, with `radio.share_maps`), independently of its peers."""
+
+    def act(key, memory, obs, state=None, dyn=None):
+        jitter = 1e-6 * jax.random.uniform(key, obs.mask.shape)
+        return memory, masked_argmax(nbv_scores(obs.features, facade_weight) + jitter, obs.mask)
+
+    return Planner(name, _no_memory, act)
+
+
+def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team") -> Planner:
+    """Next-best view in turn: robots choose in index order; robot i scores its candidates
+    on its map with the voxels that robots j < i it hears will look at (the unknown samples
+    of their chosen poses) counted as seen, so the team spreads its views."""
+    shell = params.candidates.shell[1]
+    samples = view.samples_per_pose(params.sensor, params.size)
+
+    def act(key, memory, obs, state, dyn):
+        n = obs.mask.shape[0]
+        c = state.candidates
+        jitter = 1e-6 * jax.random.uniform(key, obs.mask.shape)
+        hears = comms.contacts(state.position, dyn.radio_range)
+
+        def choose(claimed, i):
+            mine = jnp.where(hears[i][:, None], claimed, params.size**3).reshape(-1)
+            occupancy = state.occupancy[i].reshape(-1).at[mine].set(
+                geometry.FREE, mode="drop").reshape(state.occupancy.shape[1:])
+            unknown, facade = view.view_gain(occupancy, state.building_top[i],
+                                             c.position[i, ::geometry.N_HEADINGS], params.sensor,
+                                             params.size)
+            gain = unknown.reshape(-1) + facade_weight * facade.reshape(-1)
+            a = masked_argmax(view.per_cost(gain, c.cost[i], shell) + jitter[i], obs.mask[i])
+            seen = view.unknown_in_view(occupancy, state.building_top[i], c.position[i, a],
+                                        c.heading[i, a], params.sensor, params.size)
+            seen = jnp.where(jnp.any(obs.mask[i]), seen, params.size**3)
+            return claimed.at[i].set(seen), a
+
+        init = jnp.full((n, samples), params.size**3, jnp.int32)
+        return memory, _sequential(choose, init, n)
 
     return Planner(name, _no_memory, act)

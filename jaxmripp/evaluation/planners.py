@@ -38,6 +38,10 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "coordinated":
         return baselines.coordinated_planner(params, get("coordinated_kappa"),
                                              get("coordinated_lambda"), get("coordinated_mu"))
+    if name == "nbv":
+        return baselines.nbv_planner(get("nbv_facade"))
+    if name == "nbv_team":
+        return baselines.nbv_team_planner(params, get("nbv_facade"))
     if name == "oracle":
         return baselines.oracle_planner(params)
     if name == "mcts":
@@ -46,8 +50,8 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return tree_search_planner(params, simulations=get("mcts_simulations"),
                                    max_depth=get("mcts_depth"),
                                    considered=get("mcts_considered"), kappa=get("mcts_kappa"))
-    raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, mcts, "
-                     "oracle (and policy, which needs --policy)")
+    raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, nbv, "
+                     "nbv_team, mcts, oracle (and policy, which needs --policy)")
 
 
 # Defaults of the EvalConfig fields read beyond the base ones; used while
@@ -58,6 +62,7 @@ EVAL_DEFAULTS = {
     "coordinated_kappa": 0.3,
     "coordinated_lambda": 0.0,
     "coordinated_mu": 0.3,
+    "nbv_facade": 1.0,
     "mcts_simulations": 16,
     "mcts_depth": 2,
     "mcts_considered": 4,

@@ -41,7 +41,8 @@ import numpy as np
 from flax import traverse_util
 
 from jaxmripp.config import PolicyConfig
-from jaxmripp.sim.observation import FEATURES, Observation
+from jaxmripp.sim.observation import Observation
+from jaxmripp.spec import layout
 
 # Pointer-network logit clipping (Bello et al. 2017): bounded logits keep the policy
 # from collapsing early and bound the PPO ratio's sensitivity to the pointer weights.
@@ -158,8 +159,9 @@ class ActorCritic(nn.Module):
         # the env may pad them with anything; zeroing keeps non-finite padding out of the
         # 0 * value products of the attention.
         features = jnp.where(mask[:, None], features, 0.0)
-        if not self.config.comm_features:  # ablation: the policy never sees the comm GP
-            features = features * jnp.asarray(feature_keep(False), features.dtype)
+        keep = input_keep(self.config)
+        if not keep.all():  # ablation: the policy never sees the dropped input groups
+            features = features * jnp.asarray(keep, features.dtype)
 
         # Encoder: candidates attend to each other (feasible ones only as keys).
         encoded = nn.Dense(width, name="embed")(features)  # (L, W)
@@ -223,10 +225,11 @@ def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
         "ff_mult": config.ff_mult,
         "central_critic": central_critic,
         "comm_features": config.comm_features,
+        "view_features": config.view_features,
+        "intent_features": config.intent_features,
     }
 
 
-def feature_keep(comm_features: bool):
-    """(F,) 1/0 multipliers: zero the communication-GP columns when they are ablated."""
-    return [0.0 if (not comm_features and name.startswith("comm_")) else 1.0
-            for name in FEATURES]
+def input_keep(config: PolicyConfig) -> np.ndarray:
+    """(F,) 1/0 multipliers of the input columns (`jaxmripp.spec.layout.input_keep`)."""
+    return layout.input_keep(config.comm_features, config.view_features, config.intent_features)

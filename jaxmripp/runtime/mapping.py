@@ -122,12 +122,23 @@ def voxel_ahead(start: np.ndarray, end: np.ndarray, stop: np.ndarray, codes: np.
     return voxels[unknown[0] if unknown else ahead[0]]
 
 
+def raise_tops(top: np.ndarray, flat: np.ndarray, values: np.ndarray, size: int) -> None:
+    """Building tops (`jaxmripp.spec.view`), in place: every voxel in `flat` written
+    OCCUPIED raises its column to z + 1, whatever else is written there in the same call
+    (the JAX side raises from every written pair too)."""
+    occupied = np.asarray(flat, np.int64)[np.asarray(values) == OCCUPIED]
+    np.maximum.at(top.reshape(-1), occupied // size, (occupied % size + 1).astype(np.int8))
+
+
 class OccupancyMap:
-    """One robot's (G, G, G) map, stored flat; every voxel starts UNKNOWN."""
+    """One robot's (G, G, G) map, stored flat, with its building tops (`jaxmripp.spec.view`,
+    (G, G) int8, 1 + the highest z ever mapped OCCUPIED per column); every voxel starts
+    UNKNOWN, every top 0."""
 
     def __init__(self, size: int):
         self.size = size
         self.codes = np.full(size ** 3, UNKNOWN, np.int8)
+        self.top = np.zeros((size, size), np.int8)
 
     @property
     def grid(self) -> np.ndarray:
@@ -137,9 +148,24 @@ class OccupancyMap:
     def update(self, flat: np.ndarray, values: np.ndarray) -> None:
         """Sets observed voxels (flat indices in [0, G^3)) to their codes; later wins."""
         self.codes[flat] = values
+        raise_tops(self.top, flat, values, self.size)
 
     def mark_occupied(self, voxel: np.ndarray) -> None:
-        self.codes[linear_index(np.asarray(voxel), self.size)] = OCCUPIED
+        flat = linear_index(np.asarray(voxel), self.size)
+        self.codes[flat] = OCCUPIED
+        raise_tops(self.top, np.array([flat]), np.array([OCCUPIED]), self.size)
+
+    def merge(self, flat: np.ndarray, values: np.ndarray) -> np.ndarray:
+        """Another robot's codes at voxels `flat` (`jaxmripp.spec.sharing`): taken where this
+        map is UNKNOWN; every OCCUPIED one raises the tops (the maximum of the two maps'
+        tops, since a map's tops are those of the OCCUPIED voxels it ever held). Returns
+        the flat indices that were UNKNOWN here and are now known."""
+        flat = np.asarray(flat, np.int64)
+        values = np.asarray(values, np.int8)
+        fresh = (self.codes[flat] == UNKNOWN) & (values != UNKNOWN)
+        self.codes[flat[fresh]] = values[fresh]
+        raise_tops(self.top, flat, values, self.size)
+        return flat[fresh]
 
     def mark_own_voxel(self, position: np.ndarray) -> None:
         """The voxel the robot is in is FREE (it is there; `jaxmripp.spec.flight`)."""

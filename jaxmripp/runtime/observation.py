@@ -12,8 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxmripp.runtime import view
 from jaxmripp.runtime.candidates import Candidates
 from jaxmripp.runtime.gp import GaussianProcess
+from jaxmripp.runtime.mapping import OccupancyMap
 from jaxmripp.spec.grid import HEADING_ANGLES, N_HEADINGS
 from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
@@ -27,16 +29,21 @@ def _fraction_of(budget_initial) -> F32:
 
 def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_initial,
                        max_distance: float, utility_gp: GaussianProcess,
-                       comm_gp: GaussianProcess) -> np.ndarray:
+                       comm_gp: GaussianProcess, occupancy: OccupancyMap, heard: np.ndarray,
+                       fov_deg: float, sensor_range: float) -> np.ndarray:
     """(L, F) float32 per-candidate features, columns in FEATURES order.
 
     max_distance: the shell's outer radius, so dx, dy, dz lie in [-1, 1]; the GP columns
-    are the posterior mean and the square root of the latent variance at each pose.
+    are the posterior mean and the square root of the latent variance at each pose; the
+    view columns read `occupancy` (the merged map and its tops) with the sensor's field
+    of view and range; heard: (M, 3) positions of the robots heard this round.
     """
     poses = np.concatenate([c.position, HEADING_ANGLES[c.heading][:, None]], axis=1)
     u_mean, u_var = utility_gp.predict(poses)
     c_mean, c_var = comm_gp.predict(poses)
     budget = _fraction_of(budget_initial)
+    unknown, facade = view.view_gain(occupancy.codes, occupancy.top, c.position, c.heading,
+                                     fov_deg, sensor_range, occupancy.size)
     features = np.concatenate([
         (c.position - position) / F32(max_distance),
         c.position,
@@ -45,6 +52,10 @@ def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_
         c_mean[:, None], np.sqrt(c_var)[:, None],
         c.cost[:, None],
         ((F32(budget_left) - c.cost) / budget)[:, None],
+        unknown[:, None], facade[:, None],
+        view.per_cost(unknown, c.cost, max_distance)[:, None],
+        view.per_cost(facade, c.cost, max_distance)[:, None],
+        view.peer_distance(c.position, heard, max_distance)[:, None],
     ], axis=1).astype(F32)
     assert features.shape[1] == len(FEATURES)  # a column added here must be added to the spec
     return features

@@ -5,6 +5,8 @@ One planning round, on every robot, in this order (the JAX env's order, `jaxmrip
     planner.sense(position, heading, voxels, values, n_seen)   # where I am, what I saw
     radio.broadcast(planner.message())                          # waypoints, position, budget
     for data in radio.received(): planner.receive(data)         # robots within range
+    radio.broadcast(planner.map_message())                      # with spec.share_maps only:
+    for data in radio.received(): planner.receive_map(data)     # map deltas, merged
     decision = planner.decide()                                 # the chosen pose
     radio.broadcast(planner.intent_message())                   # its target (null: hover)
     for data in radio.received(): planner.receive_intent(data)  # their targets
@@ -16,15 +18,20 @@ robot's own voxel FREE. With `safety.takeoff_scan` the first `sense` is the take
 the caller turns the robot through the four headings at its start pose and passes every
 voxel seen on the way (n_seen: the windows seen at the start heading); it is charged
 `SCAN_TURNS` turns. `receive` stores what a neighbour visited and where it is now.
-`decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`), draws
-candidate poses (`candidates`) or takes ones supplied by the caller, builds the policy's
-inputs (the rule of `jaxmripp.spec.layout`, in `observation`), and picks the next pose with
-the exported policy or the greedy rule of `jaxmripp.evaluation.baselines.greedy_planner`.
+With `spec.share_maps` (`jaxmripp.spec.sharing`), `map_message` sends every robot heard
+this round the voxels of this robot's map it may lack (`sharing`; the size in bytes is
+kept in `last_map_message_bytes`) and `receive_map` merges the delta addressed to this
+robot, so that its map is the one the env's merge gives; a robot that heard nobody may
+skip both. `decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`),
+draws candidate poses (`candidates`) or takes ones supplied by the caller, builds the
+policy's inputs on the merged map (the rule of `jaxmripp.spec.layout`, in `observation`,
+with the view gain of `jaxmripp.spec.view`, in `view`) and picks the next pose with the
+exported policy or the greedy rule of `jaxmripp.evaluation.baselines.greedy_planner`.
 `resolve` applies the intent rule of `jaxmripp.spec.flight` (with `safety.intents`): if the
 chosen flight comes within d_c of the flight announced by a higher-priority robot heard
 (`safety.priority`), the robot holds -- it stays where it is, is charged nothing, and the
 next `sense` gets the same pose. Inputs are checked first (`validation`), so a rejected
-call changes nothing.
+call changes nothing, and calls out of order (`ROUND` in `exchange`) are refused.
 
 Safety filter (`safety`): whatever picks the pose, it is chosen among candidates whose
 straight flight is known free (every voxel it traverses is FREE in the robot's map, the
@@ -34,9 +41,10 @@ none is left the robot hovers: the decision is its current pose, `hover` is True
 `reason` says why.
 
 Differences from the JAX env, on purpose: the radio is single hop (the paper's; a relay
-export is refused by nothing but still runs single hop), a robot with no safe candidate
-hovers and tries again next round instead of being retired, and the utility GP is always
-the robot's own (a shared training-time GP does not exist on a robot).
+export is refused by nothing but still runs single hop, maps included), a robot with no
+safe candidate hovers and tries again next round instead of being retired, and the
+utility GP is always the robot's own (a shared training-time GP does not exist on a
+robot).
 """
 
 from __future__ import annotations
@@ -48,12 +56,14 @@ from typing import Any
 import numpy as np
 
 from jaxmripp.runtime import candidates as cands
-from jaxmripp.runtime import flight, messages, observation, safety, validation
-from jaxmripp.runtime.errors import MessageError, PlannerStateError
+from jaxmripp.runtime import flight, observation, safety, validation
+from jaxmripp.runtime.errors import PlannerStateError
+from jaxmripp.runtime.exchange import RadioExchange
 from jaxmripp.runtime.feeding import FeedSchedule
 from jaxmripp.runtime.gp import GaussianProcess
 from jaxmripp.runtime.mapping import OccupancyMap, voxel_ahead
 from jaxmripp.runtime.policy import NumpyPolicy
+from jaxmripp.runtime.sharing import MapSharing
 from jaxmripp.runtime.weights import RuntimeSpec
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import HEADING_ANGLES
@@ -84,7 +94,7 @@ class Decision:
     yields_to: int | None = None  # a hold (`resolve`): the robot whose flight goes first
 
 
-class OnboardPlanner:
+class OnboardPlanner(RadioExchange):
     """One robot's planner; see the module doc for the call order."""
 
     def __init__(
@@ -121,6 +131,8 @@ class OnboardPlanner:
         self.rng = np.random.default_rng(self.id if seed is None else seed)
 
         self.map = OccupancyMap(spec.size)
+        self.sharing = MapSharing(self.id, self.map)
+        self.last_map_message_bytes: int | None = None
         self.utility_gp = GaussianProcess(spec.gp)
         self.comm_gp = GaussianProcess(spec.gp)
         self.feeding = FeedSchedule(self.id, team_size, spec.gp.catchup_rounds)
@@ -140,6 +152,7 @@ class OnboardPlanner:
         self._command: tuple[np.ndarray, np.ndarray] | None = None  # (from, to) of last move
         self._pending: Decision | None = None  # decided, not resolved yet
         self.intents: dict[int, tuple] = {}  # sender -> (position, target, budget_left)
+        self._map_sent = self._decided = False  # this round's map message / decision
 
     @classmethod
     def load(cls, export: str | Path, robot_id: int, budget: float, **kwargs) -> "OnboardPlanner":
@@ -192,70 +205,14 @@ class OnboardPlanner:
         self.position, self.heading = position, heading
         self.map.update(flat, codes)
         self.map.mark_own_voxel(position)
+        self.sharing.note_sensed(self.step)
         if moved:
             self.history_pose.append(np.append(position, HEADING_ANGLES[heading]).astype(F32))
             self.history_utility.append(F32(n_seen) / F32(self.spec.utility_norm))
         self._command = None
         self._pending, self.intents = None, {}
-
-    def message(self, start: int = 0) -> bytes:
-        """This robot's first broadcast of a round: its history from `start`, its position
-        and its budget left (no intent)."""
-        self._require_sensed("message")
-        start = min(max(int(start), 0), len(self.history_pose))
-        poses = np.asarray(self.history_pose[start:], F32).reshape(-1, 4)
-        return messages.encode(messages.Message(
-            sender=self.id, position=self.position, heading=self.heading, start=start,
-            poses=poses, utilities=np.asarray(self.history_utility[start:], F32),
-            budget_left=self.budget_left))
-
-    def intent_message(self) -> bytes:
-        """This robot's second broadcast of a round, after `decide`: the target of the
-        flight it chose (null when it hovers), its position and budget left; no poses."""
-        decision = self._require_decided("intent_message")
-        end = len(self.history_pose)
-        return messages.encode(messages.Message(
-            sender=self.id, position=self.position, heading=self.heading, start=end,
-            poses=np.zeros((0, 4), F32), utilities=np.zeros(0, F32),
-            budget_left=self.budget_left,
-            intent=None if decision.hover else decision.position))
-
-    def receive(self, data: bytes | str | messages.Message) -> messages.Message | None:
-        """Takes one message heard this round; returns it (None for this robot's own echo)."""
-        message = self._heard(data)
-        if message is None:
-            return None
-        self.contacts[message.sender] = np.asarray(message.position, F32)
-        # Histories only grow: append the part past what we hold, if the message reaches it
-        # (a message starting beyond our end would leave a gap, so it is not used).
-        known = len(self.peer_utility[message.sender])
-        if message.start <= known < message.end:
-            fresh = known - message.start
-            self.peer_pose[message.sender].extend(np.asarray(message.poses[fresh:], F32))
-            self.peer_utility[message.sender].extend(np.asarray(message.utilities[fresh:], F32))
-        return message
-
-    def receive_intent(self, data: bytes | str | messages.Message
-                       ) -> messages.Message | None:
-        """Takes one intent message (`intent_message`) heard after `decide`; returns it
-        (None for this robot's own echo)."""
-        self._require_decided("receive_intent")
-        message = self._heard(data)
-        if message is None:
-            return None
-        self.intents[message.sender] = (np.asarray(message.position, F32), message.intent,
-                                        F32(message.budget_left))
-        return message
-
-    def _heard(self, data: bytes | str | messages.Message) -> messages.Message | None:
-        """A decoded message from a teammate, or None for this robot's own echo."""
-        message = data if isinstance(data, messages.Message) else messages.decode(data)
-        if message.sender == self.id:
-            return None
-        if message.sender >= self.team_size:
-            raise MessageError(f"radio message from robot {message.sender}: ids of this team "
-                               f"are 0 .. {self.team_size - 1}")
-        return message
+        self._map_sent = self._decided = False
+        self.contacts = {}  # positions heard are good for this round only
 
     # -----------------------------------------------------------------------------------
     # Decision
@@ -282,7 +239,6 @@ class OnboardPlanner:
         done = self.step >= self.max_steps
         mask = c.valid & safe & (not done)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
-        self.contacts = {}  # positions heard are good for this round only
 
         if not mask.any():
             reason = ("hover: step limit reached" if done else
@@ -297,7 +253,7 @@ class OnboardPlanner:
                 position=position, heading=heading, index=index, hover=False, reason=mode,
                 mode=mode, scores=scores, mask=mask, safe=safe, features=features,
                 robot_state=robot_state, candidates=c)
-        self._pending, self.intents = decision, {}
+        self._pending, self.intents, self._decided = decision, {}, True
         return decision
 
     def resolve(self) -> Decision:
@@ -335,7 +291,8 @@ class OnboardPlanner:
         self._require_sensed("observe")
         features = observation.candidate_features(
             c, self.position, self.budget_left, self.budget_initial, self.spec.shell[1],
-            self.utility_gp, self.comm_gp)
+            self.utility_gp, self.comm_gp, self.map, self._known_robots(),
+            self.spec.fov_deg, self.spec.sensor_range)
         state = observation.robot_state(self.position, self.heading, self.budget_left,
                                         self.budget_initial, self.step, self.max_steps)
         return features, state

@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from jaxmripp.spec.layout import FEATURES
+from jaxmripp.spec.layout import input_keep
 
 LOGIT_CLIP = 10.0  # jaxmripp.learn.policy.LOGIT_CLIP
 LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm default
@@ -71,7 +71,8 @@ class NumpyPolicy:
         self.layers = int(config["layers"])
         self.ff_mult = int(config["ff_mult"])
         self.central_critic = bool(config.get("central_critic", False))
-        self.comm_features = bool(config.get("comm_features", True))
+        self.input_keep = input_keep(*(bool(config.get(f"{group}_features", True))
+                                       for group in ("comm", "view", "intent")))
         if self.width % self.heads:
             raise ValueError(f"width {self.width} is not a multiple of heads {self.heads}")
         missing = [n for n in _required_names(self.layers, self.central_critic) if n not in weights]
@@ -100,10 +101,8 @@ class NumpyPolicy:
                              f"features {features.shape} / width {self.width}")
 
         features = np.where(mask[:, None], features, 0.0).astype(np.float32)
-        if not self.comm_features:  # ablation: communication-GP columns are not inputs
-            features = features * np.asarray(
-                [0.0 if name.startswith("comm_") else 1.0 for name in FEATURES],
-                np.float32)
+        if not self.input_keep.all():  # ablation: dropped input groups are not inputs
+            features = features * self.input_keep
         encoded = self._dense("embed", features)
         for i in range(self.layers):
             encoded = self._block(f"encoder_{i}", encoded, None, mask)

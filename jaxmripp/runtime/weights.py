@@ -12,7 +12,8 @@ policy.json
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
                       world.size, sensor.*, candidates.*, robots.*, radio.*, safety.*,
                       gp.*, reward.utility_norm, episode.max_steps; infinities are the
-                      string "inf". The runtime flies safety.flight "known_free" only.
+                      string "inf". The runtime flies safety.flight "known_free" only
+                      and needs radio.share_maps (whether robots exchange maps).
     policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
                       central_critic)
     weights           {"file": "policy.npz", "sha256": ..., "arrays": n, "parameters": n}
@@ -78,8 +79,11 @@ class RuntimeSpec:
     team_size: int  # robots.count the policy was trained with (a default only)
     start: tuple[float, float, float]
     start_heading: int
+    fov_deg: float  # the camera's, for the view-gain features (jaxmripp.spec.view)
+    sensor_range: float
     radio_range: float
     relay: bool
+    share_maps: bool  # robots in range exchange map deltas (jaxmripp.spec.sharing)
     collision_distance: float
     gp: GPSpec
     utility_norm: float
@@ -115,6 +119,10 @@ class RuntimeSpec:
                 f"export header: config.safety.flight is {flight!r}; the onboard runtime "
                 "flies known_free only (export a policy trained with safety.flight="
                 "known_free)")
+        if "share_maps" not in section("radio"):
+            raise WeightsFormatError("export header: missing field config.radio.share_maps "
+                                     "(exported before map sharing, protocol 3; re-export "
+                                     "the policy)")
         priority = get("safety", "priority", str)
         if priority not in PRIORITIES:
             raise WeightsFormatError(f"export header: config.safety.priority {priority!r} is "
@@ -128,8 +136,11 @@ class RuntimeSpec:
             team_size=get("robots", "count", int),
             start=tuple(get("robots", "start", (float, 3))),
             start_heading=get("robots", "start_heading", int),
+            fov_deg=get("sensor", "fov_deg", float),
+            sensor_range=get("sensor", "range", float),
             radio_range=get("radio", "range", float),
             relay=get("radio", "relay", bool),
+            share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
             gp=GPSpec(**{name: _convert(_field(gp, name, object, "config.gp."), kind,
                                         f"config.gp.{name}")

@@ -15,6 +15,8 @@ import chex
 import jax
 import jax.numpy as jnp
 
+from jaxmripp.spec.grid import UNKNOWN
+
 
 def contacts(
     positions: jax.Array, radio_range: float | jax.Array, active: jax.Array | None = None
@@ -80,3 +82,28 @@ def _reachable(contact: jax.Array) -> jax.Array:
     for _ in range(math.ceil(math.log2(max(n - 1, 1)))):
         reach = (reach @ reach > 0).astype(jnp.float32)
     return reach > 0
+
+
+def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
+               relay: bool) -> tuple[jax.Array, jax.Array]:
+    """The map merge of `jaxmripp.spec.sharing`: (N, G, G, G) int8 maps, (N, G, G) int8
+    building tops, (N, N) bool contacts -> merged maps and tops.
+
+    Every robot takes, where its map is UNKNOWN, the code of the maps it hears as they
+    stood before this merge (single hop), or of its whole component (relay); known codes
+    agree with the truth, so the order peers are heard in does not matter.
+    """
+    n = occupancy.shape[0]
+    chex.assert_shape(contact, (n, n))
+    links = _reachable(contact) if relay else contact
+
+    def hear(k, maps):
+        merged, merged_tops = maps
+        heard = links[:, k]
+        merged = jnp.where(heard[:, None, None, None] & (merged == UNKNOWN), occupancy[k][None],
+                           merged)
+        merged_tops = jnp.where(heard[:, None, None], jnp.maximum(merged_tops, tops[k][None]),
+                                merged_tops)
+        return merged, merged_tops
+
+    return jax.lax.fori_loop(0, n, hear, (occupancy, tops))

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import comms, flight, geometry, gp, sensing, world as worldmod
+from jaxmripp.sim import comms, flight, geometry, gp, sensing, view, world as worldmod
 from jaxmripp.sim.geometry import FREE, N_HEADINGS, OCCUPIED
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.sim.feeding import feed_gps
@@ -50,6 +50,8 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         budget_initial=budget.astype(jnp.float32),
         done=jnp.zeros((n,), bool),
         occupancy=jnp.broadcast_to(sensing.empty_occupancy(size), (n, size, size, size)),
+        building_top=jnp.broadcast_to(view.empty_tops(size), (n, size, size)),
+        heard=jnp.zeros((n, n), bool),
         discovered=jnp.zeros(world.target_valid.shape, bool),
         history_pose=jnp.zeros((n, history, 4), jnp.float32),
         history_utility=jnp.zeros((n, history), jnp.float32),
@@ -84,15 +86,16 @@ def _takeoff_scan(state: EnvState, params: EnvParams, dyn: DynamicParams) -> Env
     """A full turn at the start pose (jaxmripp.spec.flight): the maps and discovered windows
     of the three other headings (the start heading's cast follows in `_after_move`),
     charged SCAN_TURNS turns."""
-    occupancy, discovered = state.occupancy, state.discovered
+    occupancy, top, discovered = state.occupancy, state.building_top, state.discovered
     for turn in range(1, N_HEADINGS):
         heading = (state.heading + turn) % N_HEADINGS
         casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
             state.world, state.position, heading, params.sensor, params.size)
         occupancy = jax.vmap(sensing.update_occupancy)(occupancy, casts)
+        top = jax.vmap(view.raise_tops_from_cast)(top, casts)
         discovered = discovered | jnp.any(casts.seen, axis=0)
     charge = SCAN_TURNS * dyn.turn_cost
-    return state.replace(occupancy=occupancy, discovered=discovered,
+    return state.replace(occupancy=occupancy, building_top=top, discovered=discovered,
                          budget_left=jnp.maximum(state.budget_left - charge, 0.0))
 
 
@@ -153,9 +156,12 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     bumped = jnp.where(crashed, geometry.linear_index(obstacle, size), size ** 3)
     occupancy = jax.vmap(lambda occ, index: occ.reshape(-1).at[index].set(
         OCCUPIED, mode="drop").reshape(occ.shape))(state.occupancy, bumped)
+    top = jax.vmap(view.raise_tops)(state.building_top, bumped,
+                                    jnp.full((n,), OCCUPIED, jnp.int8))
     moved = state.replace(
         position=position,
         occupancy=occupancy,
+        building_top=top,
         heading=jnp.where(moving, target_heading, state.heading),
         budget_left=jnp.maximum(state.budget_left - charge, 0.0),
         step=state.step + 1,
@@ -170,6 +176,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
         state.world, state.position, state.heading, params.sensor, size)
     occupancy = jax.vmap(sensing.update_occupancy)(state.occupancy, casts)
+    top = jax.vmap(view.raise_tops_from_cast)(state.building_top, casts)
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
     finders = jnp.maximum(fresh.sum(axis=0), 1)
@@ -189,7 +196,10 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
 
     contact = comms.contacts(state.position, dyn.radio_range)
     know = comms.exchange(know, contact, params.radio.relay)
-    state = state.replace(occupancy=occupancy, discovered=discovered, history_pose=history_pose,
+    if params.radio.share_maps:
+        occupancy, top = comms.share_maps(occupancy, top, contact, params.radio.relay)
+    state = state.replace(occupancy=occupancy, building_top=top, heard=contact,
+                          discovered=discovered, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(
                               contacts=state.metrics.contacts + contact.sum() // 2))

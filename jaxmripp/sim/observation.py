@@ -20,7 +20,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import geometry, gp
+from jaxmripp.sim import geometry, gp, view
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.sim.types import EnvState, discovered_fraction
 
@@ -31,7 +31,7 @@ from jaxmripp.sim.types import EnvState, discovered_fraction
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
 from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
-N_FEATURES = len(FEATURES)  # F = 16
+N_FEATURES = len(FEATURES)  # F = 21
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9
 N_GLOBAL_EXTRA = 2  # discovered fraction, mean budget left fraction
 
@@ -64,6 +64,14 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     c_mean, c_var = predict(state.comm_gp, poses, params.gp)
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
+    shell = params.candidates.shell[1]
+    k = params.candidates.positions
+    unknown, facade = jax.vmap(view.view_gain, in_axes=(0, 0, 0, None, None))(
+        state.occupancy, state.building_top, c.position[:, ::geometry.N_HEADINGS],
+        params.sensor, params.size)
+    unknown, facade = unknown.reshape(n, 4 * k), facade.reshape(n, 4 * k)
+    peers = jax.vmap(view.peer_distance, in_axes=(0, None, 0, None))(
+        c.position, state.position, state.heard, shell)
     features = jnp.concatenate([
         (c.position - state.position[:, None]) / params.candidates.shell[1],
         c.position,
@@ -72,6 +80,10 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
         c_mean[..., None], jnp.sqrt(c_var)[..., None],
         c.cost[..., None],
         ((state.budget_left[:, None] - c.cost) / budget)[..., None],
+        unknown[..., None], facade[..., None],
+        view.per_cost(unknown, c.cost, shell)[..., None],
+        view.per_cost(facade, c.cost, shell)[..., None],
+        peers[..., None],
     ], axis=-1)
     robot_state = jnp.concatenate([
         state.position,

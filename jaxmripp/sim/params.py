@@ -31,6 +31,7 @@ class StaticRobots:
 @dataclasses.dataclass(frozen=True)
 class StaticRadio:
     relay: bool  # forward everything known (multi-hop) instead of single hop
+    share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -48,7 +49,8 @@ class EnvParams:
     def from_config(cls, cfg: Config) -> "EnvParams":
         return cls(world=cfg.world,
                    robots=StaticRobots(cfg.robots.count, cfg.robots.start_heading),
-                   sensor=cfg.sensor, radio=StaticRadio(cfg.radio.relay), safety=cfg.safety,
+                   sensor=cfg.sensor, safety=cfg.safety,
+                   radio=StaticRadio(cfg.radio.relay, cfg.radio.share_maps),
                    candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps)
 
     @property

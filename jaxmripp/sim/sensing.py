@@ -25,7 +25,7 @@ trailing-axis reductions do not vectorise; per-cast scalars and per-ray distance
 of integer reductions, which XLA never fuses into their consumers, so they are computed
 once instead of inside every gather that reads them (`optimization_barrier` is dropped on
 CPU); and gathers from batched tables (height maps, rays) fold the batch into one flat
-table (`_take`), as does the occupancy scatter (`_scatter`).
+table (`take_flat`), as does the occupancy scatter (`_scatter`).
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ def _column_height(height, x, y, size: int):
     """Building height at columns (x, y); 0 outside the grid."""
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size)
     index = jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)
-    return jnp.where(inside, _take(height, index), 0)
+    return jnp.where(inside, take_flat(height, index), 0)
 
 
 def _clear_distances(height, pose: _Pose, cam: _Camera, size: int) -> jax.Array:
@@ -252,32 +252,32 @@ def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear):
         rel = [r + 0.5 * t if k == axis else r for k, (r, t) in enumerate(zip(rel_centre, toward))]
         per_cell = (n / 2) / (cam.tan * jnp.maximum(rel[0] * fx + rel[1] * fy, 1e-3))
         cell = lambda s: jnp.clip(jnp.floor(s * per_cell + n / 2), 0, n - 1).astype(jnp.int32)
-        reach = _take(clear, cell(rel[0] * rx + rel[1] * ry) * n + cell(rel[2])) + _SURFACE
+        reach = take_flat(clear, cell(rel[0] * rx + rel[1] * ry) * n + cell(rel[2])) + _SURFACE
         in_sight = reach * reach >= sum(r * r for r in rel)
         seen |= (rel[axis] * toward[axis] < 0) & open_air[axis] & in_sight
     return seen
 
 
 @jax.custom_batching.custom_vmap
-def _take(table: jax.Array, index: jax.Array) -> jax.Array:
+def take_flat(table: jax.Array, index: jax.Array) -> jax.Array:
     """table (L,)[index] for indices known to lie in [0, L)."""
     return jnp.take(table, index, mode="clip")
 
 
-@_take.def_vmap
-def _take_vmap(axis_size, in_batched, table, index):
+@take_flat.def_vmap
+def take_flat_vmap(axis_size, in_batched, table, index):
     """Batched tables become one long table, indices offset by each table's position: a
     flat gather, rather than the (table, entry) index pairs vmap would otherwise build."""
     if not in_batched[0]:
-        return _take(table, index), in_batched[1]
+        return take_flat(table, index), in_batched[1]
     if not in_batched[1]:
         index = jnp.broadcast_to(index, (axis_size, *index.shape))
     length = table.shape[-1]
     if axis_size * length >= 2**31:  # flat indices would overflow int32
-        return jax.vmap(_take.fun)(table, index), True
+        return jax.vmap(take_flat.fun)(table, index), True
     start = jnp.arange(axis_size, dtype=jnp.int32) * length
     start = start.reshape((-1,) + (1,) * (index.ndim - 1))
-    return _take(table.reshape(-1), index + start), True
+    return take_flat(table.reshape(-1), index + start), True
 
 
 # ---------------------------------------------------------------------------------------
@@ -313,7 +313,7 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
 
     if sensor.model == "raycast":
         clear = _clear_distances(height, pose, cam, size)
-        keep &= cam.view_distance <= _take(clear, cam.view_ray) + jnp.where(solid, _SURFACE, 0.0)
+        keep &= cam.view_distance <= take_flat(clear, cam.view_ray) + jnp.where(solid, _SURFACE, 0.0)
         seen = _in_raycast_view(ahead, right, offset[2], cam.tan, cam.reach) & _windows_seen(
             world, pose, cam, clear)
     else:

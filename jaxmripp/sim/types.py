@@ -41,6 +41,8 @@ class EnvState:
     budget_initial: jax.Array  # () float32 per-robot share of the team budget
     done: jax.Array  # (N,) bool: out of affordable candidates or out of steps
     occupancy: jax.Array  # (N, G, G, G) int8 per-robot maps (geometry codes)
+    building_top: jax.Array  # (N, G, G) int8 per-robot building tops (jaxmripp.spec.view)
+    heard: jax.Array  # (N, N) bool robots in radio range at the current positions
     discovered: jax.Array  # (T,) bool: found by anybody
     history_pose: jax.Array  # (N, H, 4) poses each robot visited, in order
     history_utility: jax.Array  # (N, H) normalised number of windows seen from each

@@ -7,16 +7,16 @@ is written once:
 - `grid`: occupancy codes, headings, voxel indexing and the traversal of a line of flight;
 - `flight`: safe flight -- known-free space, closest approach, intents, collisions;
 - `layout`: the policy's input columns (per candidate and per robot);
-- `protocol`: the radio message format and its version.
+- `protocol`: the radio message formats and their version.
 """
 
 from jaxmripp.spec.grid import (FREE, HEADING_ANGLES, HEADING_NAMES, HEADING_VECTORS,
                                 N_HEADINGS, OCCUPIED, UNKNOWN, traversal_steps)
 from jaxmripp.spec.layout import FEATURES, N_GLOBAL_EXTRA, ROBOT_STATE
-from jaxmripp.spec.protocol import MAX_BYTES, MESSAGE_TYPE, PROTOCOL_VERSION
+from jaxmripp.spec.protocol import MAP_MESSAGE_TYPE, MAX_BYTES, MESSAGE_TYPE, PROTOCOL_VERSION
 
 __all__ = [
-    "FEATURES", "FREE", "HEADING_ANGLES", "HEADING_NAMES", "HEADING_VECTORS", "MAX_BYTES",
-    "MESSAGE_TYPE", "N_GLOBAL_EXTRA", "N_HEADINGS", "OCCUPIED", "PROTOCOL_VERSION",
+    "FEATURES", "FREE", "HEADING_ANGLES", "HEADING_NAMES", "HEADING_VECTORS",
+    "MAP_MESSAGE_TYPE", "MAX_BYTES", "MESSAGE_TYPE", "N_GLOBAL_EXTRA", "N_HEADINGS", "OCCUPIED", "PROTOCOL_VERSION",
     "ROBOT_STATE", "UNKNOWN", "traversal_steps",
 ]

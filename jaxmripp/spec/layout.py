@@ -14,19 +14,31 @@ position q with budget b_left of its initial share b_0 (b = max(b_0, 1e-6) below
     comm_mean, comm_std  the same two for the communication GP
     cost            c = |p - q| + turn_cost [h != current heading]
     budget_after    (b_left - c) / b, the budget fraction left after the move
+    view_unknown, view_facade, view_unknown_per_cost, view_facade_per_cost
+                    the view gain of the pose on the robot's map (`jaxmripp.spec.view`)
+    peer_distance   distance to the nearest robot heard, in shell lengths (`jaxmripp.spec.view`)
 The GPs are read after this round's feeding (`jaxmripp.spec.feeding`; with the training
 option gp.shared_utility the env's utility GP is the team's, a robot's is always its own).
 ROBOT_STATE: q, one-hot current heading, b_left / b, step / T_max (T_max = episode length).
 A centralised critic also reads every robot's ROBOT_STATE (robot-major) followed by the
 N_GLOBAL_EXTRA team values: the discovered fraction and the mean budget left / b.
 Padding candidates (invalid) still get rows computed by these formulas; the mask hides them.
+Input groups can be ablated (`policy.comm_features`, `view_features`, `intent_features`):
+the policy then multiplies the group's columns by 0 (`input_keep`), on both sides.
 """
+
+from __future__ import annotations
+
+import numpy as np
+
 
 FEATURES = (
     "dx", "dy", "dz", "x", "y", "z",
     "heading_0", "heading_1", "heading_2", "heading_3",
     "utility_mean", "utility_std", "comm_mean", "comm_std",
     "cost", "budget_after",
+    "view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost",
+    "peer_distance",
 )  # fmt: skip
 ROBOT_STATE = (
     "x", "y", "z",
@@ -34,3 +46,19 @@ ROBOT_STATE = (
     "budget_left", "step",
 )  # fmt: skip
 N_GLOBAL_EXTRA = 2
+
+
+FEATURE_GROUPS = {
+    "comm": ("comm_mean", "comm_std"),
+    "view": ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost"),
+    "intent": ("peer_distance",),
+}
+
+
+def input_keep(comm: bool = True, view: bool = True, intent: bool = True) -> np.ndarray:
+    """(F,) float32 1/0 multipliers of the FEATURES columns: 0 for an ablated group."""
+    dropped = set()
+    for group, kept in (("comm", comm), ("view", view), ("intent", intent)):
+        if not kept:
+            dropped.update(FEATURE_GROUPS[group])
+    return np.asarray([0.0 if name in dropped else 1.0 for name in FEATURES], np.float32)

@@ -1,0 +1,150 @@
+"""View gain (jaxmripp.spec.view): the sample table, building tops and the gain of candidate
+poses, against hand-worked cases and a loop-by-loop reference; the next-best-view planners."""
+
+from __future__ import annotations
+
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp.config import SensorConfig, from_dict
+from jaxmripp.evaluation import baselines
+from jaxmripp.sim import env, sensing, view
+from jaxmripp.sim.params import DynamicParams, EnvParams
+from jaxmripp.spec import view as spec
+from jaxmripp.spec.grid import FREE, HEADING_VECTORS, OCCUPIED, UNKNOWN
+
+SENSOR = SensorConfig(range=0.3)
+G = 20
+gain = jax.jit(view.view_gain, static_argnums=(3, 4))
+
+
+def reference_gain(occupancy, top, position):
+    """The rule of jaxmripp.spec.view, one sample at a time."""
+    offsets, weights = spec.gain_table(SENSOR.fov_deg, SENSOR.range, G)
+    camera = np.clip(np.floor(position * G), 0, G - 1).astype(int)
+    padded = np.pad(top.astype(int), 1)
+    near = np.max([padded[1 + dx:G + 1 + dx, 1 + dy:G + 1 + dy]
+                   for dx, dy in [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)]], axis=0)
+    out = np.zeros((len(position), 4, 2))
+    for k, c in enumerate(camera):
+        for h in range(4):
+            for ray in offsets[h]:
+                for (dx, dy, dz), w in zip(ray, weights):
+                    x, y, z = c + (dx, dy, dz)
+                    if not (0 <= x < G and 0 <= y < G and 0 <= z < G):
+                        break
+                    code = occupancy[x, y, z]
+                    if code == OCCUPIED:
+                        break
+                    if code == UNKNOWN:
+                        out[k, h, 0] += w
+                        out[k, h, 1] += w * (0 < near[x, y] and z <= near[x, y])
+    return out / (offsets.shape[1] * weights.sum())
+
+
+def test_table_rays_fan_out_from_the_heading_and_stay_in_the_sensor_view():
+    offsets, weights = spec.gain_table(SENSOR.fov_deg, SENSOR.range, G)
+    s = spec.samples_per_ray(SENSOR.range, G)
+    assert offsets.shape == (4, spec.RAYS_PER_SIDE**2, s, 3)
+    assert s * spec.SAMPLE_STEP + math.sqrt(3) / 2 <= SENSOR.range * G
+    np.testing.assert_array_equal(weights, (spec.SAMPLE_STEP * np.arange(1, s + 1)) ** 2)
+    centre = spec.RAYS_PER_SIDE**2 // 2
+    tan = math.tan(math.radians(SENSOR.fov_deg) / 2)
+    for h in range(4):
+        d = spec.SAMPLE_STEP * np.arange(1, s + 1)
+        np.testing.assert_array_equal(offsets[h, centre], d[:, None] * HEADING_VECTORS[h])
+        forward, right = HEADING_VECTORS[h][:2], np.cross(HEADING_VECTORS[h], [0, 0, 1])[:2]
+        o = offsets[h].reshape(-1, 3)
+        inside = sensing._in_raycast_view(o[:, :2] @ forward, o[:, :2] @ right, o[:, 2], tan,
+                                          SENSOR.range * G)
+        assert inside.all()
+
+
+def test_unknown_world_is_all_gain_and_a_wall_ahead_hides_what_is_behind_it():
+    occupancy = np.full((G, G, G), UNKNOWN, np.int8)
+    top = np.zeros((G, G), np.int8)
+    position = np.full((1, 3), 0.5, np.float32)
+    unknown, facade = (np.asarray(x) for x in gain(occupancy, top, position, SENSOR, G))
+    np.testing.assert_array_equal(unknown, 1.0)
+    np.testing.assert_array_equal(facade, 0.0)
+    # The first sample (d = 1) of the central and the four corner rays (directions
+    # (1, 0, 0) and (3, +-2, +-2) / sqrt(17)) rounds to the voxel just ahead, that of the
+    # four edge rays ((3, +-2, 0) / sqrt(13)) to a side neighbour: a known building voxel
+    # just ahead hides 5 of the 9 rays of heading 0, and nothing of the others.
+    occupancy[11, 10, 10] = OCCUPIED
+    unknown, _ = (np.asarray(x) for x in gain(occupancy, top, position, SENSOR, G))
+    np.testing.assert_allclose(unknown[0], [4 / 9, 1.0, 1.0, 1.0], rtol=1e-6)
+    # Three voxels ahead only the central ray meets it (S = 5 samples, weights d^2 = 1, 4,
+    # 9, 16, 25 on each of 9 rays): it loses d = 3, 4, 5.
+    occupancy[11, 10, 10] = UNKNOWN
+    occupancy[13, 10, 10] = OCCUPIED
+    top = view.raise_tops(jnp.asarray(top), jnp.asarray([(13 * G + 10) * G + 10]),
+                          jnp.asarray([OCCUPIED], jnp.int8))
+    assert int(top[13, 10]) == 11
+    unknown, facade = (np.asarray(x) for x in gain(occupancy, top, position, SENSOR, G))
+    assert spec.samples_per_ray(SENSOR.range, G) == 5
+    assert unknown[0, 0] == pytest.approx(1 - (9 + 16 + 25) / (9 * 55), abs=1e-6)
+    # Facade: unknown samples at z <= 11 over the columns around (13, 10): heading 0 sees
+    # them in front of the voxel, heading 2 (-x) looks away.
+    assert facade[0, 0] > 0 and facade[0, 2] == 0
+    np.testing.assert_allclose(np.stack([unknown, facade], -1),
+                               reference_gain(occupancy, np.asarray(top), position), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed):
+    rng = np.random.default_rng(seed)
+    occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(G, G, G),
+                           p=[0.5, 0.45, 0.05]).astype(np.int8)
+    top = np.max(np.where(occupancy == OCCUPIED, np.arange(G) + 1, 0), axis=-1).astype(np.int8)
+    position = rng.uniform(0, 1, (5, 3)).astype(np.float32)
+    unknown, facade = gain(occupancy, top, position, SENSOR, G)
+    expected = reference_gain(occupancy, top, position)
+    np.testing.assert_allclose(np.asarray(unknown), expected[..., 0], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(facade), expected[..., 1], atol=1e-6)
+
+
+def test_tops_follow_the_cast_writes():
+    rng = np.random.default_rng(3)
+    voxels = rng.integers(0, G**3 + 5, 200).astype(np.int32)  # some beyond the grid
+    values = rng.choice([FREE, OCCUPIED], 200).astype(np.int8)
+    top = np.asarray(view.raise_tops(jnp.zeros((G, G), jnp.int8), voxels, values))
+    expected = np.zeros((G, G), int)
+    for v, code in zip(voxels, values):
+        if v < G**3 and code == OCCUPIED:
+            x, y, z = np.unravel_index(v, (G, G, G))
+            expected[x, y] = max(expected[x, y], z + 1)
+    np.testing.assert_array_equal(top, expected)
+
+
+def test_peer_distance_caps_and_ignores_robots_not_heard():
+    cands = jnp.asarray([[0.0, 0.0, 0.0], [0.3, 0.0, 0.0]])
+    others = jnp.asarray([[0.0, 0.0, 0.0], [0.9, 0.0, 0.0], [0.0, 0.4, 0.0]])
+    heard = jnp.asarray([False, True, False])
+    d = np.asarray(view.peer_distance(cands, others, heard, 0.15))
+    np.testing.assert_allclose(d, [spec.PEER_CAP, 0.6 / 0.15], rtol=1e-6)  # 0.9 / 0.15 > cap
+    far = np.asarray(view.peer_distance(cands, others, jnp.zeros(3, bool), 0.15))
+    np.testing.assert_array_equal(far, spec.PEER_CAP)
+
+
+def test_nbv_team_robots_do_not_claim_the_same_view():
+    """Two robots at one spot with one map and one candidate set: the second never takes
+    the first one's pose (its view is claimed) while another pose has gain."""
+    cfg = from_dict({"world": {"size": 24}, "candidates": {"positions": 6}})
+    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
+    _, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(0), params, dyn)
+    twin = lambda x: x.at[1].set(x[0])  # noqa: E731
+    state = state.replace(position=twin(state.position), heading=twin(state.heading),
+                          occupancy=twin(state.occupancy), building_top=twin(state.building_top),
+                          candidates=jax.tree.map(twin, state.candidates))
+    obs = env.observe(state, params)
+    key = jax.random.PRNGKey(1)
+    _, alone = baselines.nbv_planner().act(key, None, obs)
+    _, team = jax.jit(baselines.nbv_team_planner(params).act)(key, None, obs, state, dyn)
+    alone, team = np.asarray(alone), np.asarray(team)
+    assert alone[0] == alone[1] == team[0]
+    assert team[1] != team[0]
