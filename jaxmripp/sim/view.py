@@ -52,58 +52,67 @@ def nearby_tops(top: jax.Array) -> jax.Array:
         jnp.maximum(padded[1:-1, :-2], padded[1:-1, 2:]))
 
 
-def _march(occupancy: jax.Array, top: jax.Array, position: jax.Array,
-           sensor: SensorConfig, size: int):
-    """Every sample of every ray of every heading from positions (K, 3): flat voxel index,
-    unknown and facade flags, each (S, K, 4, R), and the weights (S,) of `gain_table`."""
+FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
+
+
+def _sample_codes(occupancy: jax.Array, top: jax.Array, position: jax.Array,
+                  sensor: SensorConfig, size: int):
+    """Every sample of every ray of every heading from positions (K, 3): flat voxel index
+    and code, each (S, K * 4 * R) (sample-major, then position, heading, ray), with
+    FACADE for unknown facade voxels and OCCUPIED outside the grid; and the weights (S,)."""
     offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
-    # (S, 4, R) per axis: the sample axis leads (module doc).
-    ox, oy, oz = (np.ascontiguousarray(np.moveaxis(offsets[..., a], 2, 0)) for a in range(3))
+    n_samples = offsets.shape[2]
+    # One long trailing axis (K * 4 * R) vectorises; R or 4 alone would not.
+    ox, oy, oz = (np.moveaxis(offsets[..., a], 2, 0).reshape(n_samples, 1, -1) for a in range(3))
     camera = geometry.voxel_of(position, size)
-    cx, cy, cz = (camera[:, a, None, None] for a in range(3))  # (K, 1, 1)
-    codes = occupancy.reshape(-1)
-    near = nearby_tops(top).reshape(-1).astype(jnp.int32)
-    clear = jnp.ones((position.shape[0], *ox.shape[1:]), bool)  # (K, 4, R)
-    flats, unknowns, facades = [], [], []
-    for s in range(ox.shape[0]):
-        x, y, z = cx + ox[s], cy + oy[s], cz + oz[s]
-        inside = ((x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size))
-        column = jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)
-        flat = column * size + jnp.clip(z, 0, size - 1)
-        code = take_flat(codes, flat)
-        unknown = clear & inside & (code == UNKNOWN)
-        column_top = take_flat(near, column)
-        flats.append(flat)
-        unknowns.append(unknown)
-        facades.append(unknown & (column_top > 0) & (z <= column_top))
-        clear = clear & inside & (code != OCCUPIED)
-    return jnp.stack(flats), jnp.stack(unknowns), jnp.stack(facades), weights
-
-
-def _weighted_share(flags: jax.Array, weights: np.ndarray) -> jax.Array:
-    """(S, K, 4, R) flags -> (K, 4) float32: their weight over the table's whole weight."""
-    scale = np.float32(1) / np.float32(flags.shape[-1] * int(weights.sum()))
-    summed = jnp.zeros(flags.shape[1:], jnp.int32)
-    for s in range(flags.shape[0]):  # integer sums: exact, in any order
-        summed = summed + int(weights[s]) * flags[s]
-    return summed.sum(-1).astype(jnp.float32) * scale
+    x, y, z = ((camera[None, :, a, None] + o).reshape(n_samples, -1)
+               for a, o in enumerate((ox, oy, oz)))
+    inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
+    flat = (jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)) * size \
+        + jnp.clip(z, 0, size - 1)
+    # Facade folded into the map first, so that each sample takes one gather: a pass over
+    # the map costs less than a second gather per sample.
+    near = nearby_tops(top)[:, :, None]
+    height = jnp.arange(size, dtype=jnp.int8)[None, None, :]
+    marked = jnp.where((occupancy == UNKNOWN) & (near > 0) & (height <= near),
+                       jnp.int8(FACADE), occupancy)
+    code = jnp.where(inside, take_flat(marked.reshape(-1), flat), jnp.int8(OCCUPIED))
+    return flat, code, weights
 
 
 def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
               sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
     """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
     (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
-    _, unknown, facade, weights = _march(occupancy, top, position, sensor, size)
-    return _weighted_share(unknown, weights), _weighted_share(facade, weights)
+    _, code, weights = _sample_codes(occupancy, top, position, sensor, size)
+    rays = spec.RAYS_PER_SIDE**2
+    scale = np.float32(1) / np.float32(rays * int(weights.sum()))
+    # Integer sums, exact in any order: unknown weight in the low 16 bits, facade weight
+    # above (each total is at most R * sum(d^2), far below 2^16 at any sensible range).
+    assert rays * int(weights.sum()) < 1 << 15
+    summed = jnp.zeros(code.shape[1:], jnp.int32)
+    clear = jnp.ones(code.shape[1:], bool)
+    for s, w in enumerate(weights.astype(int)):
+        unknown = clear & ((code[s] == UNKNOWN) | (code[s] == FACADE))
+        facade = clear & (code[s] == FACADE)
+        summed = summed + jnp.where(unknown, jnp.int32(w), 0) + jnp.where(facade, jnp.int32(w << 16), 0)
+        clear = clear & (code[s] != OCCUPIED)
+    summed = summed.reshape(position.shape[0], 4, rays).sum(-1)
+    return ((summed & 0xFFFF).astype(jnp.float32) * scale,
+            (summed >> 16).astype(jnp.float32) * scale)
 
 
 def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
                     heading: jax.Array, sensor: SensorConfig, size: int) -> jax.Array:
     """The flat indices of the unknown samples of one pose ((3,), () int32) -> (R * S,)
     int32, G**3 for the other samples: the part of the map that pose would reveal."""
-    flat, unknown, _, _ = _march(occupancy, top, position[None], sensor, size)
-    flat = jnp.take(flat[:, 0], heading, axis=1)  # (S, R)
-    return jnp.where(jnp.take(unknown[:, 0], heading, axis=1), flat, size**3).reshape(-1)
+    flat, code, _ = _sample_codes(occupancy, top, position[None], sensor, size)
+    rays = spec.RAYS_PER_SIDE**2
+    flat, code = (jax.lax.dynamic_slice_in_dim(x, heading * rays, rays, axis=1)
+                  for x in (flat, code))  # (S, R)
+    blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
+    unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
+    return jnp.where(unknown, flat, size**3).reshape(-1)
 
 
 def per_cost(gain: jax.Array, cost: jax.Array, shell_outer: float) -> jax.Array:
