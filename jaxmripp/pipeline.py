@@ -12,14 +12,21 @@ import numpy as np
 from jaxmripp.evaluation import baselines, evaluate, viz
 from jaxmripp.evaluation.planners import policy_planner
 from jaxmripp.sim import episode
-from jaxmripp.learn import train as trainmod
+from jaxmripp.learn import policy as policymod, train as trainmod
+from jaxmripp.runtime import weights as weights_format
 from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
 
 
 def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
-    """Restores a run's checkpoint into a deterministic policy planner."""
+    """A deterministic policy planner from a training run's checkpoint or from a shipped
+    export (a folder with policy.npz, e.g. pretrained/default)."""
     trainer = trainmod.Trainer.build(cfg)
+    run_dir = Path(run_dir)
+    if not (run_dir / "checkpoints").is_dir() and (run_dir / weights_format.WEIGHTS_FILE).is_file():
+        exported = weights_format.load(run_dir)
+        return policy_planner(trainer.network, policymod.unflatten_params(exported.weights),
+                              cfg.policy.width)
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
     state = checkpoints.restore(trainer.init(), best=best)
     checkpoints.close()

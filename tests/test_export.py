@@ -139,3 +139,38 @@ def test_cli_missing_run_directory_fails_in_one_line(tmp_path):
     assert result.returncode == 1
     assert result.stderr.strip() == f"error: {missing}: no such run directory"
     assert result.stdout == "" and not missing.exists()
+
+
+def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
+    """A shipped folder (jaxmripp.ship) holds the export, config and metadata, and the
+    planner restored from it gives the checkpoint's actions."""
+    from jaxmripp import pipeline, ship
+    from jaxmripp.sim.observation import Observation, global_state_size
+    from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
+
+    run, cfg, _ = run_dir
+    (run / "metrics.jsonl").write_text(json.dumps(
+        {"update": 10, "env_steps": 960, "seconds": 90.0, "discovered": 0.25, "return": 1.0,
+         "entropy": 2.0}) + "\n")
+    quality = tmp_path / "quality.jsonl"
+    quality.write_text('{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n')
+    out = tmp_path / "shipped"
+    assert ship.main([str(run), str(out), "--quality", str(quality)]) == 0
+    meta = json.loads((out / "metadata.json").read_text())
+    assert meta["train_minutes"] == 1.5 and meta["updates"] == 10
+    assert meta["evaluation"] == {"quality.policy_pct": 41.5}
+    assert meta["command"].startswith("python train.py --config ")
+    assert {"policy.npz", "policy.json", "config.yaml", "learning_curve.png"} <= {
+        p.name for p in out.iterdir()}
+
+    rng = np.random.default_rng(0)
+    n, n_cand = cfg.robots.count, 4 * cfg.candidates.positions
+    obs = Observation(
+        features=rng.normal(size=(n, n_cand, len(FEATURES))).astype(np.float32),
+        mask=rng.random((n, n_cand)) < 0.7,
+        robot_state=rng.normal(size=(n, len(ROBOT_STATE))).astype(np.float32),
+        global_state=np.zeros((n, global_state_size(n)), np.float32))
+    act = lambda planner: planner.act(None, planner.init(n), obs)[1]  # noqa: E731
+    np.testing.assert_array_equal(act(pipeline.trained_planner(cfg, out)),
+                                  act(pipeline.trained_planner(cfg, run)))
+    assert ship.main([str(tmp_path / "nothing"), str(out)]) == 1

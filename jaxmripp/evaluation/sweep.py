@@ -276,7 +276,7 @@ def policy_mismatches(run_cfg: Config, cfg: Config) -> list[str]:
             a, b = getattr(theirs, field.name), getattr(ours, field.name)
             if a != b:
                 notes.append(f"{section}.{field.name}={a} (evaluating with {b})")
-    for key in ("reward.utility_norm", "world.target_placement"):
+    for key in ("reward.utility_norm", "world.target_placement", "radio.share_maps"):
         section, field = key.split(".")
         a, b = getattr(getattr(run_cfg, section), field), getattr(getattr(cfg, section), field)
         if a != b:

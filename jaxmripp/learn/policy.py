@@ -216,6 +216,13 @@ def flatten_params(params) -> dict[str, np.ndarray]:
     return {name: np.asarray(value, np.float32) for name, value in flat.items()}
 
 
+def unflatten_params(flat: dict[str, np.ndarray]) -> dict:
+    """The inverse of `flatten_params`: {"a/b/kernel": array} -> Flax params."""
+    tree = traverse_util.unflatten_dict({tuple(k.split("/")): jnp.asarray(v)
+                                         for k, v in flat.items()})
+    return {"params": tree}
+
+
 def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
     """The architecture description `NumpyPolicy` needs next to the weights."""
     return {

@@ -1,0 +1,112 @@
+"""Planning quality: the Table I protocol on a shipped (or given) policy and every
+non-learning planner.
+
+N = 3 robots, team budget B = 10, W held-out random-layout worlds x T trials, radio range
+rho = inf and 0.1; planners: the policy, nbv_team, nbv, coordinated, greedy, mcts,
+random and the oracle (an upper reference that knows the windows, never a "baseline").
+Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's world
+(configs/paper.yaml with the same protocol). Figures (JSON lines):
+
+    quality.policy_pct               mean % of windows found at rho = inf
+    quality.policy_pct_rho01         ... at rho = 0.1
+    quality.best_baseline_pct        the best non-learning planner at rho = inf (no oracle)
+    quality.best_baseline            its name
+    quality.policy_vs_best_baseline  policy_pct / best_baseline_pct
+    quality.oracle_pct               the oracle at rho = inf
+    quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
+    quality.train_minutes            the policy's training wall time (its metadata.json)
+    quality.pct.<planner>.rho<r>     every planner and range
+
+Usage (from the repository root):
+    python benchmarks/quality.py [--policy DIR] [--preset default|paper] [--worlds 25]
+                                 [--trials 10] [--out DIR] [--set key=value ...]
+--policy defaults to pretrained/<preset>; without one there, only the baselines run.
+--out also writes the evaluation tables and plots (results.md, ...) there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from common import emit  # noqa: E402
+from jaxmripp import config as cfgmod  # noqa: E402
+
+PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/paper.yaml"}
+BASELINES = ("nbv_team", "nbv", "coordinated", "greedy", "mcts", "random")
+REFERENCES = ("oracle",)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--policy", type=Path, help="default: pretrained/<preset>")
+    parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
+    parser.add_argument("--worlds", type=int, default=25)
+    parser.add_argument("--trials", type=int, default=10)
+    parser.add_argument("--out", type=Path, help="also write tables and plots here")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    args = parser.parse_args(argv)
+    policy = args.policy or Path("pretrained") / args.preset
+    if args.policy and not (policy / "config.yaml").is_file():
+        print(f"error: --policy {policy}: no config.yaml there", file=sys.stderr)
+        return 2
+    has_policy = (policy / "config.yaml").is_file()
+    planners = (["policy"] if has_policy else []) + list(BASELINES) + list(REFERENCES)
+    overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",
+                 "eval.radio_ranges=[.inf, 0.1]", "eval.budgets=[10.0]",
+                 "eval.budget_mode=team", f"eval.worlds={args.worlds}",
+                 f"eval.trials={args.trials}", "eval.layout=random", "eval.pairs=[]", *args.set]
+    try:
+        cfg = cfgmod.load(PRESETS[args.preset], overrides)
+    except cfgmod.ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+
+    from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
+    from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
+
+    policies = {}
+    if has_policy:
+        run_cfg = cfgmod.load(policy / "config.yaml")
+        for note in sweep.policy_mismatches(run_cfg, cfg):
+            print(f"note: the policy was trained with {note}", file=sys.stderr)
+        policies["policy"] = pipeline.trained_planner(run_cfg, policy)
+    result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
+                             time_planning=False, keep_pictures=False)
+    if args.out:
+        outputs.write_outputs(result, args.out, cfg, render=True, gif=False,
+                              command="python benchmarks/quality.py " + " ".join(argv or sys.argv[1:]))
+    pct = {(r.planner, r.shape.radio_range): float(r.discovered.mean()) for r in result.runs}
+    for (name, rho), value in pct.items():
+        emit(f"quality.pct.{name}.rho{rho:g}", value, "%")
+    best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
+    emit("quality.best_baseline_pct", pct[(best, math.inf)], "%")
+    print(json.dumps({"name": "quality.best_baseline", "value": best}))
+    emit("quality.oracle_pct", pct[("oracle", math.inf)], "%")
+    episodes = sum(len(r.discovered) for r in result.runs)
+    collisions = sum(int(r.safety[key].sum()) for r in result.runs
+                     for key in ("obstacle_collisions", "robot_collisions_in_range"))
+    emit("quality.collisions_per_episode", collisions / episodes, "collisions/episode",
+         episodes=episodes)
+    if has_policy:
+        emit("quality.policy_pct", pct[("policy", math.inf)], "%")
+        emit("quality.policy_pct_rho01", pct[("policy", 0.1)], "%")
+        emit("quality.policy_vs_best_baseline",
+             pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
+        metadata = policy / "metadata.json"
+        if metadata.is_file():
+            emit("quality.train_minutes", json.loads(metadata.read_text())["train_minutes"],
+                 "min")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
