@@ -131,6 +131,7 @@ RULES: dict[str, tuple] = {
     "eval.coordinated_lambda": _NONNEG,
     "eval.coordinated_mu": _NONNEG,
     "eval.nbv_facade": _NONNEG,
+    "eval.nbv_team_facade": _NONNEG,
     "eval.mcts_simulations": _range(1, 4096),
     "eval.mcts_depth": _range(1, 64),
     "eval.mcts_considered": _range(1, 512),

@@ -169,7 +169,8 @@ class EvalConfig:
     coordinated_kappa: float = 0.3
     coordinated_lambda: float = 0.0
     coordinated_mu: float = 0.3
-    nbv_facade: float = 1.0  # weight of unknown facade voxels in the nbv score
+    nbv_facade: float = 0.0  # weight of unknown facade voxels in nbv's score (tuned)
+    nbv_team_facade: float = 2.0  # ... in nbv_team's score (tuned: docs/baselines.md)
     mcts_simulations: int = 16
     mcts_depth: int = 2
     mcts_considered: int = 4

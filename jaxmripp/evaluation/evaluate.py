@@ -5,7 +5,7 @@ same world and budget, so planners are compared on identical problems.
 
 - `eval_params` / `eval_dynamic`: the static and dynamic env parameters of an evaluation
   (test layout, fixed team budget); `max_steps` covers the largest budget of a sweep.
-- `compare` / `summary_table` / `tune_greedy`: the quick comparison `pipeline.report` runs
+- `compare` / `summary_table` / `tune_greedy` / `tune_nbv`: the quick comparison `pipeline.report` runs
   after training (one key per episode, world and trial randomness together).
 - The sweep primitive (cells of N, G, rho, B compiled once per N, G) is
   `jaxmripp.evaluation.cells`; planners by name are in `jaxmripp.evaluation.planners`;
@@ -114,26 +114,55 @@ def summary_table(results: dict[str, dict], title: str = "") -> str:
     return "\n".join(line for line in lines if line)
 
 
-def tune_greedy(cfg: Config, kappas, lambdas, worlds: int, seed: int,
-                budget: float) -> list[tuple[float, float, float]]:
-    """Grid search of greedy's kappa / lambda on training-layout worlds.
+def tune(cfg: Config, planner_of, grid, worlds: int, seed: int,
+         budget: float) -> list[tuple[tuple[float, ...], float]]:
+    """Grid search of a baseline's weights on `cfg.world.layout` worlds.
 
-    Returns (kappa, lambda, mean % found) rows, best first. The grid is a traced argument
-    vmapped next to the worlds, so the whole search is one compilation.
+    planner_of(weights (k,) traced, params) -> Planner; grid: (G, k) weight rows. Returns
+    (weights, mean % found) rows, best first. The grid is a traced argument vmapped next to
+    the worlds, so the whole search is one compilation.
     """
     params = eval_params(cfg, budget, layout=cfg.world.layout)
-    grid = np.array([(k, lam) for k in kappas for lam in lambdas], np.float32)
-    found = _greedy_grid(episode_keys(seed, worlds), jnp.asarray(grid), params,
-                         eval_dynamic(cfg, budget))
+    grid = np.asarray(grid, np.float32)
+    found = _grid_search(episode_keys(seed, worlds), jnp.asarray(grid), params,
+                         eval_dynamic(cfg, budget), planner_of)
     means = np.asarray(found).mean(axis=1) * 100.0
-    rows = [(float(k), float(lam), float(m)) for (k, lam), m in zip(grid, means)]
-    return sorted(rows, key=lambda r: -r[2])
+    rows = [(tuple(float(w) for w in weights), float(m)) for weights, m in zip(grid, means)]
+    return sorted(rows, key=lambda r: -r[1])
 
 
-@functools.partial(jax.jit, static_argnames=("params",))
-def _greedy_grid(keys, grid, params: EnvParams, dyn: DynamicParams):
+def tune_greedy(cfg: Config, kappas, lambdas, worlds: int, seed: int,
+                budget: float) -> list[tuple[float, float, float]]:
+    """`tune` over greedy's kappa x lambda: (kappa, lambda, mean % found) rows, best first."""
+    grid = [(k, lam) for k in kappas for lam in lambdas]
+    rows = tune(cfg, _greedy_of, grid, worlds, seed, budget)
+    return [(k, lam, m) for (k, lam), m in rows]
+
+
+def tune_nbv(cfg: Config, facade_weights, team: bool, worlds: int, seed: int,
+             budget: float) -> list[tuple[float, float]]:
+    """`tune` over the facade weight of nbv (team=False) or nbv_team: (weight, mean % found)
+    rows, best first."""
+    rows = tune(cfg, _nbv_team_of if team else _nbv_of, [(w,) for w in facade_weights],
+                worlds, seed, budget)
+    return [(w, m) for (w,), m in rows]
+
+
+def _nbv_of(weights, params):
+    return baselines.nbv_planner(weights[0])
+
+
+def _nbv_team_of(weights, params):
+    return baselines.nbv_team_planner(params, weights[0])
+
+
+def _greedy_of(weights, params):
+    return baselines.greedy_planner(weights[0], weights[1])
+
+
+@functools.partial(jax.jit, static_argnames=("params", "planner_of"))
+def _grid_search(keys, grid, params: EnvParams, dyn: DynamicParams, planner_of):
     def one(weights, key):
-        planner = baselines.greedy_planner(weights[0], weights[1])
-        return episode.run(key, params, dyn, planner).discovered_fraction
+        return episode.run(key, params, dyn, planner_of(weights, params)).discovered_fraction
 
     return jax.vmap(lambda w: jax.vmap(lambda k: one(w, k))(keys))(grid)

@@ -41,7 +41,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "nbv":
         return baselines.nbv_planner(get("nbv_facade"))
     if name == "nbv_team":
-        return baselines.nbv_team_planner(params, get("nbv_facade"))
+        return baselines.nbv_team_planner(params, get("nbv_team_facade"))
     if name == "oracle":
         return baselines.oracle_planner(params)
     if name == "mcts":
@@ -62,7 +62,8 @@ EVAL_DEFAULTS = {
     "coordinated_kappa": 0.3,
     "coordinated_lambda": 0.0,
     "coordinated_mu": 0.3,
-    "nbv_facade": 1.0,
+    "nbv_facade": 0.0,
+    "nbv_team_facade": 2.0,
     "mcts_simulations": 16,
     "mcts_depth": 2,
     "mcts_considered": 4,
