@@ -33,8 +33,10 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
     return policy_planner(trainer.network, state.params, cfg.policy.width)
 
 
-def baseline_planners(cfg: Config) -> list[baselines.Planner]:
-    return [baselines.greedy_planner(cfg.eval.greedy_kappa, cfg.eval.greedy_lambda),
+def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:
+    """The strongest classical planner (next-best view in turn), greedy and random."""
+    return [baselines.nbv_team_planner(params, cfg.eval.nbv_team_facade),
+            baselines.greedy_planner(cfg.eval.greedy_kappa, cfg.eval.greedy_lambda),
             baselines.random_planner()]
 
 
@@ -46,8 +48,8 @@ def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,
     if records:
         viz.learning_curve(run_dir / "learning_curve.png", records,
                            keys=("discovered", "return", "entropy"))
-    planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg)
     params = evaluate.eval_params(cfg, cfg.train.eval_budget, layout="random")
+    planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg, params)
     dyn = evaluate.eval_dynamic(cfg, cfg.train.eval_budget)
     keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
     results = evaluate.compare(planners, params, dyn, keys, compiler_options)

@@ -1,12 +1,13 @@
 """Ships a trained run as a pretrained policy folder (e.g. pretrained/default).
 
     python -m jaxmripp.ship RUN_DIR OUT_DIR [--best] [--quality FILE] [--wall-minutes M]
+                            [--commit SHA]
 
 OUT_DIR gets the export the runtime and `eval.py --policy NAME=OUT_DIR` load
 (policy.npz, policy.json), the run's config.yaml, metrics.jsonl and learning curve, and
-metadata.json: the commit, the training command, its wall time (the sum of the chunks'
-times, or --wall-minutes when measured from outside), the updates and samples, and the
-evaluation figures of FILE (the JSON lines `benchmarks/quality.py` prints).
+metadata.json: the commit (HEAD, or --commit: the one the run trained with), the training
+command, its wall time (the sum of the chunks' times, or --wall-minutes when measured from
+outside), the updates and samples, and the evaluation figures of FILE (the JSON lines `benchmarks/quality.py` prints).
 """
 
 from __future__ import annotations
@@ -42,7 +43,7 @@ def _figures(path: Path | None) -> dict:
 
 
 def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None = None,
-         wall_minutes: float | None = None) -> Path:
+         wall_minutes: float | None = None, commit: str | None = None) -> Path:
     from jaxmripp import config as cfgmod
     from jaxmripp.evaluation import viz
     from jaxmripp.export import export_run
@@ -61,7 +62,7 @@ def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None 
     config_arg = preset if preset.is_file() else run_dir / "config.yaml"
     chunks_minutes = sum(r["seconds"] for r in records) / 60
     metadata = {
-        "commit": _commit(),
+        "commit": commit or _commit(),
         "command": f"python train.py --config {config_arg}",
         "train_minutes": round(wall_minutes if wall_minutes is not None else chunks_minutes, 1),
         "train_minutes_in_chunks": round(chunks_minutes, 1),
@@ -84,12 +85,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--best", action="store_true", help="ship the best checkpoint")
     parser.add_argument("--quality", type=Path, help="benchmarks/quality.py output")
     parser.add_argument("--wall-minutes", type=float, help="training wall time, measured")
+    parser.add_argument("--commit", help="the commit the run trained with (default: HEAD)")
     args = parser.parse_args(argv)
     if not (args.run_dir / "config.yaml").is_file():
         print(f"error: {args.run_dir}: not a training run (no config.yaml)", file=sys.stderr)
         return 1
     try:
-        path = ship(args.run_dir, args.out_dir, args.best, args.quality, args.wall_minutes)
+        path = ship(args.run_dir, args.out_dir, args.best, args.quality, args.wall_minutes,
+                    args.commit)
     except (OSError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
