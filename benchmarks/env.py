@@ -11,7 +11,8 @@ The same run times the step's parts separately on the same batch, each jitted an
 vmapped alone (they are not donated, so each also pays for copying its outputs):
 sensing (ray casts + occupancy-map updates), GP updates (`feeding.feed_gps`: own pose,
 peers' poses, the trace bookkeeping for r_e / r_c), GP predictions (`observe`'s posterior mean
-and variance at every candidate, both GPs) and candidates (`candidates.sample`). Shares are
+and variance at every candidate, both GPs), candidates (`candidates.sample`), view gain
+(`view.view_gain` at every candidate) and the map merge (`comms.share_maps`). Shares are
 part time / step time; they need not sum to 1 (the rest is motion, radio, rewards and
 copies, and XLA fuses differently when a part is compiled alone).
 
@@ -34,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 from common import batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp.evaluation import baselines  # noqa: E402
 from jaxmripp import config  # noqa: E402
-from jaxmripp.sim import comms, feeding, geometry, gp, sensing  # noqa: E402
+from jaxmripp.sim import comms, feeding, geometry, gp, sensing, view  # noqa: E402
 from jaxmripp.sim import candidates as cands  # noqa: E402
 from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
@@ -129,12 +130,23 @@ def main() -> None:
             k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
             p.candidates, p.safety.flight, d.turn_cost, d.collision_distance, p.size)
 
+    def view_gain_part(s):
+        return jax.vmap(view.view_gain, in_axes=(0, 0, 0, None, None))(
+            s.occupancy, s.building_top, s.candidates.position[:, ::geometry.N_HEADINGS],
+            p.sensor, p.size)
+
+    def share_maps_part(s, d):
+        contact = comms.contacts(s.position, d.radio_range)
+        return comms.share_maps(s.occupancy, s.building_top, contact, p.radio.relay)
+
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),
         "gp_update": (jax.jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
         "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), False, ()),
         "candidates": (jax.jit(jax.vmap(candidates_part, in_axes=(0, 0, None))), False,
                        (keys, dyn)),
+        "view_gain": (jax.jit(jax.vmap(view_gain_part)), False, ()),
+        "share_maps": (jax.jit(jax.vmap(share_maps_part, in_axes=(0, None))), False, (dyn,)),
     }
     part_seconds = {}
     for name, (fn, donated, extra) in parts.items():
