@@ -6,7 +6,8 @@ NumPy (25 box buildings, 250 facade windows) and a NumPy stand-in for the camera
 reference's frustum, no occlusion: about 3,000 voxels per view). Per robot and round the
 clock covers everything onboard between "the camera delivered" and "the next pose is
 known": `sense` (map update, budget, history), building its radio message, decoding and
-storing the messages of the robots in range, `decide` (GP updates, candidate sampling,
+storing the messages of the robots in range, with `radio.share_maps` the map round (its
+map deltas, merging the others'), `decide` (GP updates, candidate sampling, view gain,
 safety filter, features, policy forward pass), and the intent round (its intent message,
 decoding the others' and `resolve`). Robots start on their take-off pads and the first
 round senses all four headings (the take-off scan). The camera itself is not timed. The policy
@@ -123,7 +124,7 @@ def episode(spec, policy, seed: int, mode: str):
     position = pads(spec.start, N, Config().robots.pad_spacing)
     heading = np.full(N, spec.start_heading)
     blocked = np.zeros(N, bool)
-    seconds, sizes = [], []
+    seconds, sizes, map_sizes = [], [], []
     for step in range(steps + 1):
         casts = [city.cast(position[i], heading[i]) for i in range(N)]  # the camera: untimed
         if step == 0 and spec.takeoff_scan:  # the take-off scan sees all four headings
@@ -140,12 +141,22 @@ def episode(spec, policy, seed: int, mode: str):
             spent[i] += time.perf_counter() - start
         sizes += [len(m) for m in outbox]
         gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
-        decisions = []
+        maps = []
         for i, planner in enumerate(planners):
             start = time.perf_counter()
             for j in range(N):
                 if j != i and gap[i, j] <= spec.radio_range:
                     planner.receive(outbox[j])
+            if spec.share_maps:
+                maps.append(planner.map_message())
+            spent[i] += time.perf_counter() - start
+        map_sizes += [len(m) for m in maps]
+        decisions = []
+        for i, planner in enumerate(planners):
+            start = time.perf_counter()
+            for j in range(N):
+                if spec.share_maps and j != i and gap[i, j] <= spec.radio_range:
+                    planner.receive_map(maps[j])
             planner.decide()
             spent[i] += time.perf_counter() - start
         intents = []
@@ -169,7 +180,7 @@ def episode(spec, policy, seed: int, mode: str):
                 position[i], blocked[i] = fly(city.height, position[i], d.position, spec.size,
                                               spec.shell[1])
                 heading[i] = d.heading
-    return seconds, sizes
+    return seconds, sizes, map_sizes
 
 
 def main() -> None:
@@ -183,12 +194,13 @@ def main() -> None:
                   gp_capacity=spec.gp.capacity, width=cfg.policy.width, threads=1)
 
     for mode in ("policy", "greedy"):
-        seconds, sizes, seed = [], [], 0
+        seconds, sizes, map_sizes, seed = [], [], [], 0
         while len(seconds) < MIN_DECISIONS:
-            s, m = episode(spec, policy, seed, mode)
+            s, m, maps = episode(spec, policy, seed, mode)
             if seed >= WARMUP_EPISODES:
                 seconds += s
                 sizes += m
+                map_sizes += maps
             seed += 1
         ms = 1e3 * np.asarray(seconds)
         name = "runtime.decision_ms" if mode == "policy" else "runtime.greedy_decision_ms"
@@ -196,6 +208,9 @@ def main() -> None:
              decisions=len(ms), episodes=seed - WARMUP_EPISODES, **common)
         if mode == "policy":
             emit("runtime.message_bytes", statistics.median(sizes), "bytes")
+            if map_sizes:
+                emit("runtime.map_message_bytes", statistics.mean(map_sizes), "bytes",
+                     median=statistics.median(map_sizes), largest=max(map_sizes))
 
     # The network alone on one observation, for the ratio.
     rng = np.random.default_rng(1)

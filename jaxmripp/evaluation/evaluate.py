@@ -5,8 +5,9 @@ same world and budget, so planners are compared on identical problems.
 
 - `eval_params` / `eval_dynamic`: the static and dynamic env parameters of an evaluation
   (test layout, fixed team budget); `max_steps` covers the largest budget of a sweep.
-- `compare` / `summary_table` / `tune_greedy` / `tune_nbv`: the quick comparison `pipeline.report` runs
-  after training (one key per episode, world and trial randomness together).
+- `compare` / `summary_table`: the quick comparison `pipeline.report` runs after training
+  (one key per episode, world and trial randomness together); `tune`, `tune_greedy`,
+  `tune_nbv`, `tune_mcts`: the baselines' weights, searched on training-layout worlds.
 - The sweep primitive (cells of N, G, rho, B compiled once per N, G) is
   `jaxmripp.evaluation.cells`; planners by name are in `jaxmripp.evaluation.planners`;
   statistics in `jaxmripp.evaluation.stats`.
@@ -146,6 +147,23 @@ def tune_nbv(cfg: Config, facade_weights, team: bool, worlds: int, seed: int,
     rows = tune(cfg, _nbv_team_of if team else _nbv_of, [(w,) for w in facade_weights],
                 worlds, seed, budget)
     return [(w, m) for (w,), m in rows]
+
+
+def tune_mcts(cfg: Config, simulations, depths, worlds: int, seed: int, budget: float
+              ) -> list[tuple[int, int, float, float]]:
+    """The tree search's simulations x depth on `cfg.world.layout` worlds (static shapes:
+    one compilation per pair): (simulations, depth, mean % found, ms per robot-step of
+    simulation and planning) rows, best first."""
+    from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
+
+    params = eval_params(cfg, budget, layout=cfg.world.layout)
+    planners = [tree_search_planner(params, simulations=n, max_depth=d,
+                                    considered=cfg.eval.mcts_considered, kappa=cfg.eval.mcts_kappa,
+                                    name=f"{n}x{d}") for n in simulations for d in depths]
+    results = compare(planners, params, eval_dynamic(cfg, budget), episode_keys(seed, worlds))
+    rows = [(n, d, float(results[f"{n}x{d}"]["discovered"].mean()),
+             float(results[f"{n}x{d}"]["ms_per_robot_step"])) for n in simulations for d in depths]
+    return sorted(rows, key=lambda r: -r[2])
 
 
 def _nbv_of(weights, params):
