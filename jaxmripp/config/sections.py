@@ -171,8 +171,8 @@ class EvalConfig:
     coordinated_mu: float = 0.3
     nbv_facade: float = 0.0  # weight of unknown facade voxels in nbv's score (tuned)
     nbv_team_facade: float = 2.0  # ... in nbv_team's score (tuned: docs/baselines.md)
-    mcts_simulations: int = 16
-    mcts_depth: int = 2
+    mcts_simulations: int = 64  # tuned with mcts_depth: docs/baselines.md
+    mcts_depth: int = 4
     mcts_considered: int = 4
     mcts_kappa: float = 0.3
     budget_mode: str = "team"  # team: budgets are team budgets | per_robot

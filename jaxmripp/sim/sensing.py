@@ -25,7 +25,7 @@ trailing-axis reductions do not vectorise; per-cast scalars and per-ray distance
 of integer reductions, which XLA never fuses into their consumers, so they are computed
 once instead of inside every gather that reads them (`optimization_barrier` is dropped on
 CPU); and gathers from batched tables (height maps, rays) fold the batch into one flat
-table (`take_flat`), as does the occupancy scatter (`_scatter`).
+table (`take_flat`), as do the occupancy scatter and the building tops' (`_flat_scatter`).
 """
 
 from __future__ import annotations
@@ -324,28 +324,37 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
                       voxels=jnp.where(keep, flat, size**3).astype(jnp.int32), values=values)
 
 
-@jax.custom_batching.custom_vmap
-def _scatter(target: jax.Array, index: jax.Array, values: jax.Array) -> jax.Array:
-    """target (L,) with target[index] = values; indices outside [0, L) are dropped."""
-    length = target.shape[0]
-    index = jnp.where((index >= 0) & (index < length), index, length)
-    return target.at[index].set(values, mode="drop")
+def _flat_scatter(write: str):
+    """target (L,), index, values -> target with target[index] written (`write`: "set" or
+    "max"); indices outside [0, L) are dropped."""
+
+    @jax.custom_batching.custom_vmap
+    def scatter(target: jax.Array, index: jax.Array, values: jax.Array) -> jax.Array:
+        length = target.shape[0]
+        index = jnp.where((index >= 0) & (index < length), index, length)
+        return getattr(target.at[index], write)(values, mode="drop")
+
+    @scatter.def_vmap
+    def scatter_vmap(axis_size, in_batched, target, index, values):
+        """Batched maps become one long map, indices offset by each map's position: one
+        flat scatter runs ~2.5x faster on XLA:CPU than the batched scatter vmap would emit
+        (which also materialises a (map, voxel) index pair per update). Nested vmaps fold
+        again."""
+        target, index, values = (x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
+                                 for x, b in zip((target, index, values), in_batched))
+        length = target.shape[-1]
+        if axis_size * length >= 2**31:  # flat indices would overflow int32
+            return jax.vmap(scatter.fun)(target, index, values), True
+        start = (jnp.arange(axis_size, dtype=jnp.int32) * length)[:, None]
+        index = jnp.where((index >= 0) & (index < length), index + start, axis_size * length)
+        flat = scatter(target.reshape(-1), index.reshape(-1), values.reshape(-1))
+        return flat.reshape(axis_size, length), True
+
+    return scatter
 
 
-@_scatter.def_vmap
-def _scatter_vmap(axis_size, in_batched, target, index, values):
-    """Batched maps become one long map, indices offset by each map's position: one flat
-    scatter runs ~2.5x faster on XLA:CPU than the batched scatter vmap would emit (which
-    also materialises a (map, voxel) index pair per update). Nested vmaps fold again."""
-    target, index, values = (x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
-                             for x, b in zip((target, index, values), in_batched))
-    length = target.shape[-1]
-    if axis_size * length >= 2**31:  # flat indices would overflow int32
-        return jax.vmap(_scatter.fun)(target, index, values), True
-    start = (jnp.arange(axis_size, dtype=jnp.int32) * length)[:, None]
-    index = jnp.where((index >= 0) & (index < length), index + start, axis_size * length)
-    flat = _scatter(target.reshape(-1), index.reshape(-1), values.reshape(-1))
-    return flat.reshape(axis_size, length), True
+_scatter = _flat_scatter("set")
+scatter_max = _flat_scatter("max")
 
 
 def update_occupancy(occupancy: jax.Array, result: CastResult) -> jax.Array:

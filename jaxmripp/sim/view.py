@@ -16,7 +16,7 @@ import numpy as np
 from jaxmripp.config import SensorConfig
 from jaxmripp.sim import geometry
 from jaxmripp.sim.geometry import OCCUPIED, UNKNOWN
-from jaxmripp.sim.sensing import CastResult, take_flat
+from jaxmripp.sim.sensing import CastResult, scatter_max, take_flat
 from jaxmripp.spec import view as spec
 
 
@@ -34,10 +34,11 @@ def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Arra
     """(G, G) int8 tops after writing codes `values` at flat voxel indices `voxels` (G**3
     and beyond: nothing written): a voxel written OCCUPIED raises its column to z + 1."""
     size = top.shape[0]
+    voxels, values = jnp.atleast_1d(voxels), jnp.atleast_1d(values)
     written = (voxels < size**3) & (values == OCCUPIED)
     column = jnp.where(written, voxels // size, size * size)
     height = ((voxels % size) + 1).astype(jnp.int8)
-    return top.reshape(-1).at[column].max(height, mode="drop").reshape(top.shape)
+    return scatter_max(top.reshape(-1), column, height).reshape(top.shape)
 
 
 def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
