@@ -10,7 +10,7 @@ import jax
 import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
-from jaxmripp.evaluation.planners import policy_planner
+from jaxmripp.evaluation.planners import baseline_planner, policy_planner
 from jaxmripp.sim import episode
 from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.runtime import weights as weights_format
@@ -34,10 +34,9 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:
-    """The strongest classical planner (next-best view in turn), greedy and random."""
-    return [baselines.nbv_team_planner(params, cfg.eval.nbv_team_facade),
-            baselines.greedy_planner(cfg.eval.greedy_kappa, cfg.eval.greedy_lambda),
-            baselines.random_planner()]
+    """The baselines `make train` compares the policy with: `eval.planners` but the policy."""
+    return [baseline_planner(name, params, cfg.eval) for name in cfg.eval.planners
+            if name != "policy"]
 
 
 def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,

@@ -29,7 +29,7 @@ def test_report_writes_its_files_and_a_row_per_planner(tmp_path):
     for name in ("learning_curve.png", "eval_table.md", "eval_summary.json",
                  "discovered_vs_budget.png", "episode_policy.png"):
         assert (run_dir / name).is_file() and (run_dir / name).stat().st_size > 0, name
-    names = ["policy", "nbv_team", "greedy", "random"]
+    names = ["policy", "greedy", "random"]
     assert list(means) == names
     table = (run_dir / "eval_table.md").read_text()
     assert lines == [table.rstrip("\n")]

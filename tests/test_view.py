@@ -134,16 +134,16 @@ def test_peer_distance_caps_and_ignores_robots_not_heard():
 def test_nbv_team_robots_do_not_claim_the_same_view():
     """Two robots at one spot with one map and one candidate set: the second never takes
     the first one's pose (its view is claimed) while another pose has gain."""
-    cfg = from_dict({"world": {"size": 24}, "candidates": {"positions": 6}})
+    cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 6}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     _, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(0), params, dyn)
     twin = lambda x: x.at[1].set(x[0])  # noqa: E731
     state = state.replace(position=twin(state.position), heading=twin(state.heading),
                           occupancy=twin(state.occupancy), building_top=twin(state.building_top),
                           candidates=jax.tree.map(twin, state.candidates))
-    obs = env.observe(state, params)
+    obs = jax.jit(env.observe, static_argnums=1)(state, params)
     key = jax.random.PRNGKey(1)
-    _, alone = baselines.nbv_planner().act(key, None, obs)
+    _, alone = jax.jit(baselines.nbv_planner().act)(key, None, obs)
     _, team = jax.jit(baselines.nbv_team_planner(params).act)(key, None, obs, state, dyn)
     alone, team = np.asarray(alone), np.asarray(team)
     assert alone[0] == alone[1] == team[0]
