@@ -2,16 +2,17 @@
 non-learning planner.
 
 N = 3 robots, team budget B = 10, W held-out random-layout worlds x T trials, radio range
-rho = inf and 0.1; planners: the policy, nbv_team, nbv, coordinated, greedy, mcts,
+rho = inf and 0.1; planners: the policy, nbv_team, nbv, coordinated, greedy, mcts, rig,
 random and the oracle (an upper reference that knows the windows, never a "baseline").
 Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's world
-(configs/paper.yaml with the same protocol). Figures (JSON lines):
+(configs/eval_paper_world.yaml, the same protocol). Figures (JSON lines):
 
     quality.policy_pct               mean % of windows found at rho = inf
     quality.policy_pct_rho01         ... at rho = 0.1
     quality.best_baseline_pct        the best non-learning planner at rho = inf (no oracle)
     quality.best_baseline            its name
     quality.policy_vs_best_baseline  policy_pct / best_baseline_pct
+    quality.policy_vs_best_p         Welch's two-sided p-value of that difference
     quality.oracle_pct               the oracle at rho = inf
     quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
     quality.train_minutes            the policy's training wall time (its metadata.json)
@@ -39,8 +40,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from common import emit  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
-PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/paper.yaml"}
-BASELINES = ("nbv_team", "nbv", "coordinated", "greedy", "mcts", "random")
+PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
+BASELINES = ("nbv_team", "nbv", "coordinated", "greedy", "mcts", "rig", "random")
 REFERENCES = ("oracle",)
 
 
@@ -72,6 +73,7 @@ def main(argv=None) -> int:
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
+    from jaxmripp.evaluation.stats import welch_ttest  # noqa: PLC0415
 
     policies = {}
     if has_policy:
@@ -84,7 +86,8 @@ def main(argv=None) -> int:
     if args.out:
         outputs.write_outputs(result, args.out, cfg, render=True, gif=False,
                               command="python benchmarks/quality.py " + " ".join(argv or sys.argv[1:]))
-    pct = {(r.planner, r.shape.radio_range): float(r.discovered.mean()) for r in result.runs}
+    found = {(r.planner, r.shape.radio_range): r.discovered for r in result.runs}
+    pct = {key: float(value.mean()) for key, value in found.items()}
     for (name, rho), value in pct.items():
         emit(f"quality.pct.{name}.rho{rho:g}", value, "%")
     best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
@@ -101,6 +104,9 @@ def main(argv=None) -> int:
         emit("quality.policy_pct_rho01", pct[("policy", 0.1)], "%")
         emit("quality.policy_vs_best_baseline",
              pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
+        p_value = welch_ttest(found[("policy", math.inf)], found[(best, math.inf)])[2]
+        print(json.dumps({"name": "quality.policy_vs_best_p", "value": float(f"{p_value:.3g}"),
+                          "unit": "p"}))
         metadata = policy / "metadata.json"
         if metadata.is_file():
             emit("quality.train_minutes", json.loads(metadata.read_text())["train_minutes"],

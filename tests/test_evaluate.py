@@ -95,7 +95,7 @@ def test_pairs_and_planner_names():
     assert sweep.planner_names(cfg, {"full": None, "g0": None}) == ["greedy", "full", "g0", "random"]
 
 
-@pytest.mark.parametrize("name", ["eval_paper", "eval_scale", "eval_ablation"])
+@pytest.mark.parametrize("name", ["eval_paper", "eval_paper_world", "eval_scale", "eval_ablation"])
 def test_presets_load(name):
     cfg = config.load(ROOT / "configs" / f"{name}.yaml")
     shapes = sweep.shapes_of(cfg)

@@ -48,7 +48,8 @@ def _pair(rule):
 _POSITIVE = _range(0, lo_open=True)
 _NONNEG = _range(0)
 _UNIT = _range(0, 1)
-PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "mcts", "oracle")
+PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "mcts", "rig",
+            "oracle")
 
 RULES: dict[str, tuple] = {
     "world.size": _range(10, 256),

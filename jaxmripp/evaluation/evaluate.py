@@ -7,7 +7,8 @@ same world and budget, so planners are compared on identical problems.
   (test layout, fixed team budget); `max_steps` covers the largest budget of a sweep.
 - `compare` / `summary_table`: the quick comparison `pipeline.report` runs after training
   (one key per episode, world and trial randomness together); `tune`, `tune_greedy`,
-  `tune_nbv`, `tune_mcts`: the baselines' weights, searched on training-layout worlds.
+  `tune_nbv`, `tune_mcts`, `tune_rig`: the baselines' weights, searched on training-layout
+  worlds.
 - The sweep primitive (cells of N, G, rho, B compiled once per N, G) is
   `jaxmripp.evaluation.cells`; planners by name are in `jaxmripp.evaluation.planners`;
   statistics in `jaxmripp.evaluation.stats`.
@@ -28,6 +29,7 @@ import numpy as np
 from jaxmripp.config import Config
 from jaxmripp.evaluation import baselines
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_counts
+from jaxmripp.evaluation.planners import eval_setting
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import episode
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -164,6 +166,26 @@ def tune_mcts(cfg: Config, simulations, depths, worlds: int, seed: int, budget: 
     rows = [(n, d, float(results[f"{n}x{d}"]["discovered"].mean()),
              float(results[f"{n}x{d}"]["ms_per_robot_step"])) for n in simulations for d in depths]
     return sorted(rows, key=lambda r: -r[2])
+
+
+def tune_rig(cfg: Config, iterations, depths, worlds: int, seed: int, budget: float
+             ) -> list[tuple[int, int, float]]:
+    """`tune` over RIG's iterations x depth on `cfg.world.layout` worlds: (iterations,
+    depth, mean % found) rows, best first. One compilation: the tree is allocated for the
+    largest iterations and depth and each grid row limits its rounds and depth as traced
+    values, so every row costs as much as the largest (time a setting with `compare`)."""
+    grid = [(n, d) for n in iterations for d in depths]
+    planner_of = functools.partial(_rig_of, iterations=max(iterations), max_depth=max(depths),
+                                   kappa=eval_setting(cfg, "rig_kappa"))
+    rows = tune(cfg, planner_of, grid, worlds, seed, budget)
+    return [(int(n), int(d), m) for (n, d), m in rows]
+
+
+def _rig_of(weights, params, iterations, max_depth, kappa):
+    from jaxmripp.evaluation.rig import rig_planner  # noqa: PLC0415 (mctx)
+
+    return rig_planner(params, iterations, max_depth, kappa, rounds=weights[0],
+                       depth_limit=weights[1])
 
 
 def _nbv_of(weights, params):

@@ -50,8 +50,13 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return tree_search_planner(params, simulations=get("mcts_simulations"),
                                    max_depth=get("mcts_depth"),
                                    considered=get("mcts_considered"), kappa=get("mcts_kappa"))
+    if name == "rig":
+        from jaxmripp.evaluation.rig import rig_planner  # noqa: PLC0415 (mctx)
+
+        return rig_planner(params, iterations=get("rig_iterations"), max_depth=get("rig_depth"),
+                           kappa=get("rig_kappa"))
     raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, nbv, "
-                     "nbv_team, mcts, oracle (and policy, which needs --policy)")
+                     "nbv_team, mcts, rig, oracle (and policy, which needs --policy)")
 
 
 # Defaults of the EvalConfig fields read beyond the base ones; used while
@@ -68,6 +73,9 @@ EVAL_DEFAULTS = {
     "mcts_depth": 4,
     "mcts_considered": 4,
     "mcts_kappa": 0.3,
+    "rig_iterations": 64,
+    "rig_depth": 4,
+    "rig_kappa": 0.3,
     "budget_mode": "team",
     "zip_with_size": (),
     "pairs": (),

@@ -20,8 +20,9 @@ jaxmripp.config does not define them):
   first planner against each other one);
 - batch: episodes per vmapped call (0: sized to memory, cells.auto_batch);
 - time_planning: also time planner.act alone; render: pictures and GIFs;
-- coordinated_kappa / _lambda / _mu, nbv_facade, nbv_team_facade and mcts_simulations /
-  _depth / _considered / _kappa: the baselines' knobs (see baselines.coordinated_planner, nbv_planner, tree_search).
+- coordinated_kappa / _lambda / _mu, nbv_facade, nbv_team_facade, mcts_simulations /
+  _depth / _considered / _kappa and rig_iterations / _depth / _kappa: the baselines' knobs
+  (see baselines.coordinated_planner, nbv_planner, tree_search, rig).
 """
 
 from __future__ import annotations

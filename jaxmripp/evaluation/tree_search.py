@@ -73,7 +73,7 @@ class Context:
     turn_cost: jax.Array  # () DynamicParams.turn_cost
 
 
-def _scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty: bool = True):
+def scores(ctx: Context, poses, path, path_valid, gp_cfg, kappa: float, novelty: bool = True):
     """r(x | S) for poses (K, 4), S = path (valid rows) + the peers' chosen poses."""
     s = jnp.concatenate([path, ctx.peer_pose])
     on = jnp.concatenate([path_valid, ctx.peer_valid])
@@ -129,7 +129,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
             path_valid=node.path_valid.at[slot].set(True), depth=node.depth + 1)
         poses, valid = children(ctx, child)
         valid &= ok
-        score = _scores(ctx, poses, child.path, child.path_valid, gp_cfg, kappa, novelty)
+        score = scores(ctx, poses, child.path, child.path_valid, gp_cfg, kappa, novelty)
         child = child.replace(child_score=score, child_valid=valid)
         child = jax.tree.map(lambda new, old: jnp.where(ok, new, old), child,
                              node.replace(child_valid=jnp.zeros_like(valid)))
@@ -163,7 +163,7 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
             path = jnp.zeros((max_depth, 4), jnp.float32)
             path_valid = jnp.zeros((max_depth,), bool)
             key_jitter, key_search = jax.random.split(keys[i])
-            score = _scores(ctx, poses, path, path_valid, gp_cfg, kappa, novelty)
+            score = scores(ctx, poses, path, path_valid, gp_cfg, kappa, novelty)
             score += 1e-4 * jax.random.uniform(key_jitter, score.shape)
             root_node = Node(position=state.position[i], heading=state.heading[i],
                              budget=state.budget_left[i], path=path, path_valid=path_valid,

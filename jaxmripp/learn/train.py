@@ -133,7 +133,9 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
     run_dir.mkdir(parents=True, exist_ok=True)
     trainer = Trainer.build(cfg)
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    state = trainer.init()
+    # placed on the device explicitly, as a restored checkpoint is, so that a fresh and a
+    # resumed run compile the same program (and share JAX's compilation cache)
+    state = jax.device_put(trainer.init(), jax.devices()[0])
     if resume and checkpoints.latest_step() is not None:
         state = checkpoints.restore(state)
         log(f"resumed {run_dir} at update {int(state.update)}")
