@@ -68,6 +68,12 @@ def test_bad_values_give_one_clear_line(override, needle):
     assert "\n" not in message
 
 
+def test_view_prior_needs_the_view_features():
+    with pytest.raises(ConfigError, match="policy.view_prior: got 2.0; allowed: 0 while"):
+        cfgmod.load(None, ["policy.view_prior=2", "policy.view_features=false"])
+    assert cfgmod.load(None, ["policy.view_prior=2"]).policy.view_prior == 2.0
+
+
 def test_near_miss_key_suggests_the_right_name():
     with pytest.raises(ConfigError, match="did you mean 'world.size'"):
         cfgmod.load(None, ["world.sise=50"])

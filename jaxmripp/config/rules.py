@@ -93,6 +93,7 @@ RULES: dict[str, tuple] = {
     "policy.heads": _range(1, 64),
     "policy.layers": _range(0, 16),
     "policy.ff_mult": _range(1, 16),
+    "policy.view_prior": _NONNEG,
     "ppo.algo": _choice("ippo", "mappo"),
     "ppo.learning_rate": _range(0, 1, lo_open=True),
     "ppo.lr_decay": _range(0, 1, lo_open=True),
@@ -175,6 +176,9 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
     problems += _pad_checks(cfg)
+    if cfg.policy.view_prior > 0 and not cfg.policy.view_features:
+        problems.append(("policy.view_prior", cfg.policy.view_prior,
+                         "0 while policy.view_features is false (the prior reads them)"))
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))

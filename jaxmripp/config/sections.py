@@ -121,6 +121,7 @@ class PolicyConfig:
     comm_features: bool = True  # False: ablation without communication-GP inputs
     view_features: bool = True  # False: ablation without the view-gain inputs
     intent_features: bool = True  # False: ablation without the peer-distance input
+    view_prior: float = 0.0  # > 0: next-best-view logit prior of this initial weight
 
 
 @dataclasses.dataclass(frozen=True)

@@ -74,7 +74,7 @@ EVAL_DEFAULTS = {
     "mcts_considered": 4,
     "mcts_kappa": 0.3,
     "rig_iterations": 64,
-    "rig_depth": 4,
+    "rig_depth": 2,
     "rig_kappa": 0.3,
     "budget_mode": "team",
     "zip_with_size": (),

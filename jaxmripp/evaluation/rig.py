@@ -130,7 +130,7 @@ def best_action(key, tree: Tree, mask) -> jax.Array:
 
 
 def robot_tree(key, params, obs, state, dyn, i, peer_pose, peer_valid, iterations: int = 64,
-               max_depth: int = 4, kappa: float = 0.3, discount: float = 0.9,
+               max_depth: int = 2, kappa: float = 0.3, discount: float = 0.9,
                novelty: bool = True, rounds=None, depth_limit=None) -> Tree:
     """Robot i's tree in the env's state, given the poses (N, 4) that the peers it hears
     (peer_valid (N,)) chose; arguments as in `rig_planner`."""
@@ -155,7 +155,7 @@ def robot_tree(key, params, obs, state, dyn, i, peer_pose, peer_valid, iteration
                 max_depth, discount, rounds, depth_limit)
 
 
-def rig_planner(params, iterations: int = 64, max_depth: int = 4, kappa: float = 0.3,
+def rig_planner(params, iterations: int = 64, max_depth: int = 2, kappa: float = 0.3,
                 discount: float = 0.9, novelty: bool = True, name: str = "rig",
                 rounds=None, depth_limit=None) -> Planner:
     """The RIG baseline (module docstring); `params` is the env's static EnvParams, the

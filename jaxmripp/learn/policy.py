@@ -16,7 +16,8 @@ Forward pass (parameter names in quotes; `flatten_params` joins them with "/"):
     new_memory = "memory"(memory, s)                         GRU over the path so far
     d = "query"([s, new_memory])                             (W,)
     d = "decoder"(d, E)                                      pre-LN cross-attention + FF
-    logits = CLIP * tanh("pointer_query"(d) . "pointer_key"(E) / sqrt(W)), masked
+    logits = CLIP * tanh("pointer_query"(d) . "pointer_key"(E) / sqrt(W))
+             (+ "view_prior" * the VIEW PRIOR of jaxmripp.spec.layout), masked
     value = "value_out"(relu("value_hidden"(d)))             IPPO
           = "value_out"(relu("value_hidden"([relu("global_embed"(global_state)),
                                              robot_state])))  central critic (MAPPO)
@@ -159,6 +160,7 @@ class ActorCritic(nn.Module):
         # the env may pad them with anything; zeroing keeps non-finite padding out of the
         # 0 * value products of the attention.
         features = jnp.where(mask[:, None], features, 0.0)
+        prior = layout.view_prior(features, mask, jnp) if cfg.view_prior > 0 else None
         keep = input_keep(self.config)
         if not keep.all():  # ablation: the policy never sees the dropped input groups
             features = features * jnp.asarray(keep, features.dtype)
@@ -187,6 +189,9 @@ class ActorCritic(nn.Module):
         )(decoded)
         pointer_keys = nn.Dense(width, name="pointer_key")(encoded)  # (L, W)
         logits = LOGIT_CLIP * jnp.tanh(pointer_keys @ pointer_query / math.sqrt(width))
+        if prior is not None:
+            weight = self.param("view_prior", nn.initializers.constant(cfg.view_prior), ())
+            logits = logits + weight * prior
         logits = masked_logits(logits, mask)
 
         if self.central_critic:
@@ -234,6 +239,7 @@ def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
         "comm_features": config.comm_features,
         "view_features": config.view_features,
         "intent_features": config.intent_features,
+        "view_prior": config.view_prior > 0,
     }
 
 

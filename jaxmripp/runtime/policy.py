@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from jaxmripp.spec.layout import input_keep
+from jaxmripp.spec.layout import input_keep, view_prior
 
 LOGIT_CLIP = 10.0  # jaxmripp.learn.policy.LOGIT_CLIP
 LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm default
@@ -40,7 +40,7 @@ def _relu(x: np.ndarray) -> np.ndarray:
     return np.maximum(x, 0.0)
 
 
-def _required_names(layers: int, central_critic: bool) -> list[str]:
+def _required_names(layers: int, central_critic: bool, prior: bool) -> list[str]:
     """Every weight name the forward pass reads (see jaxmripp.learn.policy's module doc)."""
     dense = lambda n: [f"{n}/kernel", f"{n}/bias"]  # noqa: E731
     norm = lambda n: [f"{n}/scale", f"{n}/bias"]  # noqa: E731
@@ -59,6 +59,8 @@ def _required_names(layers: int, central_critic: bool) -> list[str]:
     names += dense("value_hidden") + dense("value_out")
     if central_critic:
         names += dense("global_embed")
+    if prior:
+        names.append("view_prior")
     return names
 
 
@@ -71,11 +73,13 @@ class NumpyPolicy:
         self.layers = int(config["layers"])
         self.ff_mult = int(config["ff_mult"])
         self.central_critic = bool(config.get("central_critic", False))
+        self.view_prior = bool(config.get("view_prior", False))
         self.input_keep = input_keep(*(bool(config.get(f"{group}_features", True))
                                        for group in ("comm", "view", "intent")))
         if self.width % self.heads:
             raise ValueError(f"width {self.width} is not a multiple of heads {self.heads}")
-        missing = [n for n in _required_names(self.layers, self.central_critic) if n not in weights]
+        missing = [n for n in _required_names(self.layers, self.central_critic, self.view_prior)
+                   if n not in weights]
         if missing:
             raise KeyError(f"weights lack {len(missing)} arrays, e.g. {missing[:4]}")
         self.w = {name: np.asarray(value, np.float32) for name, value in weights.items()}
@@ -101,6 +105,7 @@ class NumpyPolicy:
                              f"features {features.shape} / width {self.width}")
 
         features = np.where(mask[:, None], features, 0.0).astype(np.float32)
+        prior = view_prior(features, mask) if self.view_prior else None
         if not self.input_keep.all():  # ablation: dropped input groups are not inputs
             features = features * self.input_keep
         encoded = self._dense("embed", features)
@@ -116,6 +121,8 @@ class NumpyPolicy:
         pointer_query = self._dense("pointer_query", decoded)
         pointer_keys = self._dense("pointer_key", encoded)
         logits = LOGIT_CLIP * np.tanh(pointer_keys @ pointer_query / math.sqrt(self.width))
+        if prior is not None:
+            logits = logits + self.w["view_prior"] * prior
         logits = _masked(logits, mask)
 
         if self.central_critic:

@@ -25,6 +25,11 @@ N_GLOBAL_EXTRA team values: the discovered fraction and the mean budget left / b
 Padding candidates (invalid) still get rows computed by these formulas; the mask hides them.
 Input groups can be ablated (`policy.comm_features`, `view_features`, `intent_features`):
 the policy then multiplies the group's columns by 0 (`input_keep`), on both sides.
+
+VIEW PRIOR (`policy.view_prior` w > 0): the policy adds a * g_i / max(max_j g_j, 1e-6) to
+candidate i's logit, g = the view_unknown_per_cost column with infeasible rows at 0 and a
+a learned scalar ("view_prior") that starts at w. Before training the policy's most
+probable candidate is then the next-best-view planner's; training learns what to change.
 """
 
 from __future__ import annotations
@@ -53,6 +58,17 @@ FEATURE_GROUPS = {
     "view": ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost"),
     "intent": ("peer_distance",),
 }
+
+
+VIEW_PRIOR_FEATURE = "view_unknown_per_cost"
+VIEW_PRIOR_FLOOR = 1e-6
+
+
+def view_prior(features, mask, xp=np):
+    """(L,) the VIEW PRIOR's normalised gain, g_i / max(max_j g_j, floor), for features
+    (L, F) and mask (L,); `xp` is numpy or jax.numpy, so both sides share this rule."""
+    gain = xp.where(mask, features[:, FEATURES.index(VIEW_PRIOR_FEATURE)], 0.0)
+    return gain / xp.maximum(xp.max(gain), xp.float32(VIEW_PRIOR_FLOOR))
 
 
 def input_keep(comm: bool = True, view: bool = True, intent: bool = True) -> np.ndarray:
