@@ -57,3 +57,39 @@ def batch_arguments(description: str) -> argparse.ArgumentParser:
     parser.add_argument("--size", type=int, default=50)
     parser.add_argument("--repeats", type=int, default=5)
     return parser
+
+
+class RandomTeamStepper:
+    """A batch of environments stepped by the random planner: `reset()` then `step()`,
+    one jitted, vmapped team step with the state donated (what env.py and scale.py time)."""
+
+    def __init__(self, params, dyn, envs: int, seed: int = 0):
+        from jaxmripp.evaluation import baselines  # noqa: PLC0415
+        from jaxmripp.sim import env as envmod  # noqa: PLC0415
+
+        self.params, self.dyn, self.envs = params, dyn, envs
+        self.key = jax.random.PRNGKey(seed + 1)
+        self._keys = jax.random.split(jax.random.PRNGKey(seed), envs)
+        self._reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d),
+                                       in_axes=(0, None)))
+        planner = baselines.random_planner()
+
+        def team_step(key, obs, state, dyn):
+            key_act, key_step = jax.random.split(key)
+            _, actions = planner.act(key_act, None, obs, state, dyn)
+            obs, state, reward, _, _ = envmod.step(key_step, state, actions, params, dyn)
+            return obs, state, reward
+
+        self._step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)),
+                             donate_argnums=(1, 2))
+        self.obs = self.state = None
+
+    def reset(self):
+        self.obs, self.state = jax.block_until_ready(self._reset(self._keys, self.dyn))
+        return self.state
+
+    def step(self):
+        self.key, key = jax.random.split(self.key)
+        self.obs, self.state, reward = self._step(jax.random.split(key, self.envs),
+                                                  self.obs, self.state, self.dyn)
+        return reward

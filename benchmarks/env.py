@@ -32,12 +32,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import batch_arguments, emit, median_seconds  # noqa: E402
-from jaxmripp.evaluation import baselines  # noqa: E402
+from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, sensing, view  # noqa: E402
 from jaxmripp.sim import candidates as cands  # noqa: E402
-from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
@@ -58,28 +56,11 @@ def main() -> None:
     common = dict(envs=envs, robots=n, size=params.size, candidates=params.n_candidates,
                   gp_capacity=params.gp.capacity, backend=jax.default_backend())
 
-    keys = jax.random.split(jax.random.PRNGKey(0), envs)
+    stepper = RandomTeamStepper(params, dyn, envs)
     start = time.perf_counter()
-    reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)))
-    obs, state = jax.block_until_ready(reset(keys, dyn))
+    stepper.reset()
     emit("env.reset_compile_and_run_s", time.perf_counter() - start, "s", **common)
-
-    planner = baselines.random_planner()
-
-    def team_step(key, obs, state, dyn):
-        key_act, key_step = jax.random.split(key)
-        _, actions = planner.act(key_act, None, obs, state, dyn)
-        obs, state, reward, done, info = envmod.step(key_step, state, actions, params, dyn)
-        return obs, state, reward
-
-    step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)), donate_argnums=(1, 2))
-    holder = {"obs": obs, "state": state, "key": jax.random.PRNGKey(1)}
-
-    def run():
-        holder["key"], key = jax.random.split(holder["key"])
-        holder["obs"], holder["state"], reward = step(jax.random.split(key, envs),
-                                                      holder["obs"], holder["state"], dyn)
-        return reward
+    run = stepper.step
 
     start = time.perf_counter()
     jax.block_until_ready(run())
@@ -144,7 +125,7 @@ def main() -> None:
         "gp_update": (jax.jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
         "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), False, ()),
         "candidates": (jax.jit(jax.vmap(candidates_part, in_axes=(0, 0, None))), False,
-                       (keys, dyn)),
+                       (jax.random.split(jax.random.PRNGKey(0), envs), dyn)),
         "view_gain": (jax.jit(jax.vmap(view_gain_part)), False, ()),
         "share_maps": (jax.jit(jax.vmap(share_maps_part, in_axes=(0, None))), False, (dyn,)),
     }
@@ -152,8 +133,8 @@ def main() -> None:
     for name, (fn, donated, extra) in parts.items():
         def run_part():
             if not donated:
-                return fn(holder["state"], *extra)
-            holder["state"], out = fn(holder["state"], *extra)
+                return fn(stepper.state, *extra)
+            stepper.state, out = fn(stepper.state, *extra)
             return out
 
         part_seconds[name] = median_seconds(run_part, repeats=args.repeats)
