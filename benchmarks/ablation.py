@@ -133,7 +133,8 @@ def main(argv=None) -> int:
     for env in sorted({environment_overrides(v) for v in args.variants}):
         cfg = cfgmod.load(eval_path, [*protocol, *env])
         policies = {f"{variant}-s{seed}": pipeline.trained_planner(
-            run_cfg, args.runs / args.preset / f"{variant}-s{seed}")
+            run_cfg, args.runs / args.preset / f"{variant}-s{seed}")._replace(
+                name=f"{variant}-s{seed}")
             for (variant, seed), run_cfg in runs.items() if environment_overrides(variant) == env}
         result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                                  time_planning=False, keep_pictures=False)
