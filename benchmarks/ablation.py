@@ -32,7 +32,6 @@ configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml for --u
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -44,7 +43,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit  # noqa: E402
+from common import emit, emit_p  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
 VARIANTS = {
@@ -154,8 +153,7 @@ def main(argv=None) -> int:
                  episodes=len(pooled))
             p = welch_ttest(pooled, full)[2] if variant != "full" else math.nan
             if variant != "full":
-                print(json.dumps({"name": f"ablation.{args.preset}.p.{variant}.rho{rho:g}",
-                                  "value": float(f"{p:.3g}"), "unit": "p"}))
+                emit_p(f"ablation.{args.preset}.p.{variant}.rho{rho:g}", p)
             rows.append((variant, rho, [v.mean() for v in per_seed], pooled, full, p))
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)

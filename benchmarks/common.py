@@ -26,6 +26,13 @@ def emit(name: str, value: float, unit: str, **extra: Any) -> None:
     sys.stdout.flush()
 
 
+def emit_p(name: str, p: float) -> None:
+    """Prints a p-value as a JSON line, to 3 significant digits (emit's rounding would
+    print small ones as 0)."""
+    print(json.dumps({"name": name, "value": float(f"{p:.3g}"), "unit": "p"}))
+    sys.stdout.flush()
+
+
 def median_seconds(fn: Callable[[], Any], repeats: int = 5, warmup: int = 1) -> float:
     """Median wall time of fn() (outputs blocked on), after warm-up calls that compile."""
     for _ in range(warmup):

@@ -37,7 +37,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit  # noqa: E402
+from common import emit, emit_p  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
 PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
@@ -105,8 +105,7 @@ def main(argv=None) -> int:
         emit("quality.policy_vs_best_baseline",
              pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
         p_value = welch_ttest(found[("policy", math.inf)], found[(best, math.inf)])[2]
-        print(json.dumps({"name": "quality.policy_vs_best_p", "value": float(f"{p_value:.3g}"),
-                          "unit": "p"}))
+        emit_p("quality.policy_vs_best_p", p_value)
         metadata = policy / "metadata.json"
         if metadata.is_file():
             emit("quality.train_minutes", json.loads(metadata.read_text())["train_minutes"],
