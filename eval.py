@@ -15,6 +15,7 @@ from pathlib import Path
 
 from jaxmripp import allocator
 from jaxmripp import config as cfgmod
+from jaxmripp.parallel import launch
 
 
 def parse_policy(text: str) -> tuple[str, Path]:
@@ -37,6 +38,7 @@ def main(argv=None) -> int:
     parser.add_argument("--no-timing", action="store_true",
                         help="skip the separate planner.act timing (one compile less per cell)")
     parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. eval.worlds=5")
+    launch.add_arguments(parser)
     args = parser.parse_args(argv)
     allocator.keep_freed_memory()
     try:
@@ -47,26 +49,32 @@ def main(argv=None) -> int:
                 raise cfgmod.ConfigError(f"--policy {name}={run_dir}: no config.yaml there")
         if len({n for n, _ in policies}) != len(policies):
             raise cfgmod.ConfigError("--policy: names must be distinct (NAME=RUN_DIR)")
-    except cfgmod.ConfigError as err:
+        launch.initialize(launch.from_arguments(args))
+    except (cfgmod.ConfigError, launch.LaunchError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415 (after argument errors)
+    from jaxmripp.parallel.mesh import is_main_process  # noqa: PLC0415
+
+    say = print if is_main_process() else (lambda *_: None)
 
     planners = {}
     for name, run_dir in policies:
         run_cfg = cfgmod.load(run_dir / "config.yaml")
         for note in sweep.policy_mismatches(run_cfg, cfg):
-            print(f"note: {name} was trained with {note}")
+            say(f"note: {name} was trained with {note}")
         planners[name] = pipeline.trained_planner(run_cfg, run_dir, best=args.best)._replace(
             name=name)
-        print(f"policy {name}: {run_dir}")
+        say(f"policy {name}: {run_dir}")
     out = Path(args.out) if args.out else (
         policies[0][1] / "eval" if policies else Path("runs") / Path(args.config).stem / "eval")
     render = not args.no_render and sweep.eval_setting(cfg, "render")
     result = sweep.run_sweep(cfg, planners, time_planning=False if args.no_timing else None,
-                             keep_pictures=render)
+                             keep_pictures=render, log=say)
+    if not is_main_process():
+        return 0
     command = "python eval.py " + " ".join(shlex.quote(a) for a in (argv or sys.argv[1:]))
     paths = outputs.write_outputs(result, out, cfg, render=render, gif=not args.no_gif,
                                 command=command)

@@ -8,6 +8,8 @@ from jaxmripp import allocator
 from jaxmripp import config as cfgmod
 from jaxmripp import pipeline
 from jaxmripp.learn import train as trainmod
+from jaxmripp.parallel import launch
+from jaxmripp.parallel.mesh import ShardingError, is_main_process
 
 
 def main(argv=None) -> int:
@@ -19,6 +21,7 @@ def main(argv=None) -> int:
     parser.add_argument("--runs", default="runs", help="where new run folders are created")
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. world.size=64")
+    launch.add_arguments(parser)
     args = parser.parse_args(argv)
     allocator.keep_freed_memory()
     try:
@@ -27,18 +30,22 @@ def main(argv=None) -> int:
             cfg = cfgmod.load(run_dir / "config.yaml", args.overrides)
         else:
             cfg = cfgmod.load(args.config, args.overrides)
+        launch.initialize(launch.from_arguments(args))
+        if not args.resume:  # every process picks the folder before any creates it
             run_dir = trainmod.fresh_run_dir(Path(args.runs), cfg.train.name)
-    except cfgmod.ConfigError as err:
+            launch.barrier("run folder chosen")
+        say = print if is_main_process() else (lambda *_: None)
+        say(f"run folder: {run_dir}")
+        state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
+                               stop_after_chunks=args.stop_after_chunks, log=say)
+    except (cfgmod.ConfigError, launch.LaunchError, ShardingError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
-    print(f"run folder: {run_dir}")
-    state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
-                           stop_after_chunks=args.stop_after_chunks)
     finished = int(state.update) >= cfg.train.updates
     if finished and not args.no_eval:
-        pipeline.report(cfg, run_dir)
-    print(f"results: {run_dir}/ (metrics.jsonl, learning_curve.png, eval_table.md, "
-          "discovered_vs_budget.png, episode_policy.png, checkpoints/)")
+        pipeline.report(cfg, run_dir, log=say)
+    say(f"results: {run_dir}/ (metrics.jsonl, learning_curve.png, eval_table.md, "
+        "discovered_vs_budget.png, episode_policy.png, checkpoints/)")
     return 0
 
 

@@ -20,6 +20,9 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import importlib.util
+import os
+import pkgutil
 import platform
 
 # mallopt parameter numbers from glibc's malloc.h.
@@ -33,10 +36,32 @@ ARENAS = 2
 
 
 def keep_freed_memory() -> bool:
-    """No chunk-level mmap, no heap trimming, two arenas; False (no change) if not glibc."""
+    """No chunk-level mmap, no heap trimming, two arenas; False (no change) if not glibc
+    or if JAX will compute on an accelerator (whose buffers are not malloc'd).
+
+    Call it before JAX starts its threads (their arenas would already exist): it asks only
+    which platforms JAX can use, without starting one."""
     if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+        return False
+    if accelerator_expected():
         return False
     libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
     libc.mallopt.argtypes = [ctypes.c_int, ctypes.c_int]
     settings = [(M_MMAP_MAX, 0), (M_TRIM_THRESHOLD, TRIM_THRESHOLD), (M_ARENA_MAX, ARENAS)]
     return all([bool(libc.mallopt(param, value)) for param, value in settings])
+
+
+def accelerator_expected() -> bool:
+    """Whether JAX's default backend will be a GPU or TPU: JAX_PLATFORMS names one first,
+    or (JAX_PLATFORMS unset) a GPU plugin or libtpu is installed."""
+    chosen = os.environ.get("JAX_PLATFORMS", "").split(",")[0].strip().lower()
+    if chosen:
+        return chosen != "cpu"
+    try:
+        import jax_plugins  # noqa: PLC0415 (namespace package of JAX's GPU plugins)
+
+        if any(pkgutil.iter_modules(jax_plugins.__path__)):
+            return True
+    except ImportError:
+        pass
+    return importlib.util.find_spec("libtpu") is not None

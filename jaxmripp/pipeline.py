@@ -14,8 +14,8 @@ from jaxmripp.evaluation.planners import baseline_planner, policy_planner
 from jaxmripp.sim import episode
 from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.runtime import weights as weights_format
-from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
+from jaxmripp.parallel.mesh import is_main_process
 
 
 def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
@@ -27,9 +27,7 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
         exported = weights_format.load(run_dir)
         return policy_planner(trainer.network, policymod.unflatten_params(exported.weights),
                               cfg.policy.width)
-    checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    state = checkpoints.restore(trainer.init(), best=best)
-    checkpoints.close()
+    state = trainmod.restore(cfg, run_dir, best=best)
     return policy_planner(trainer.network, state.params, cfg.policy.width)
 
 
@@ -42,28 +40,32 @@ def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:
 def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,
            compiler_options: dict | None = None) -> dict:
     """Learning curve, held-out comparison table and an episode picture in run_dir;
-    returns the mean % of windows found per planner. `compiler_options` go to XLA."""
-    records = trainmod.read_metrics(run_dir)
-    if records:
-        viz.learning_curve(run_dir / "learning_curve.png", records,
-                           keys=("discovered", "return", "entropy"))
+    returns the mean % of windows found per planner. `compiler_options` go to XLA.
+    Every process of a multi-process run evaluates its share; process 0 writes."""
     params = evaluate.eval_params(cfg, cfg.train.eval_budget, layout="random")
     planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg, params)
     dyn = evaluate.eval_dynamic(cfg, cfg.train.eval_budget)
     keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
     results = evaluate.compare(planners, params, dyn, keys, compiler_options)
+    shown = jax.jit(lambda k, d: episode.run(k, params, d, planners[0]),
+                    compiler_options=compiler_options)(keys[0], dyn)
     title = (f"{cfg.train.eval_worlds} held-out random-layout worlds, N = {params.n_robots}, "
              f"B = {cfg.train.eval_budget}, rho = {cfg.radio.range}")
     table = evaluate.summary_table(results, title)
-    (run_dir / "eval_table.md").write_text(table + "\n")
-    (run_dir / "eval_summary.json").write_text(json.dumps(
-        {name: {"mean": float(r["discovered"].mean()), "std": float(r["discovered"].std(ddof=1)),
-                "ms_per_robot_step": r["ms_per_robot_step"]} for name, r in results.items()},
-        indent=2))
-    viz.discovery_curves(run_dir / "discovered_vs_budget.png", results)
-    shown = jax.jit(lambda k, d: episode.run(k, params, d, planners[0]),
-                    compiler_options=compiler_options)(keys[0], dyn)
-    viz.render_result(run_dir / "episode_policy.png", shown, cfg.radio.range,
-                      title=f"trained policy: {100 * float(shown.discovered_fraction):.1f}% found")
-    log(table)
+    if is_main_process():
+        records = trainmod.read_metrics(run_dir)
+        if records:
+            viz.learning_curve(run_dir / "learning_curve.png", records,
+                               keys=("discovered", "return", "entropy"))
+        (run_dir / "eval_table.md").write_text(table + "\n")
+        (run_dir / "eval_summary.json").write_text(json.dumps(
+            {name: {"mean": float(r["discovered"].mean()),
+                    "std": float(r["discovered"].std(ddof=1)),
+                    "ms_per_robot_step": r["ms_per_robot_step"]} for name, r in results.items()},
+            indent=2))
+        viz.discovery_curves(run_dir / "discovered_vs_budget.png", results)
+        found = 100 * float(shown.discovered_fraction)
+        viz.render_result(run_dir / "episode_policy.png", shown, cfg.radio.range,
+                          title=f"trained policy: {found:.1f}% found")
+        log(table)
     return {name: float(np.mean(r["discovered"])) for name, r in results.items()}

@@ -6,7 +6,7 @@ which costs far less). Set before any test module imports jax; an XLA_FLAGS the 
 sets keeps its own choice.
 
 Compiled programs also go to JAX's persistent cache in .pytest_cache/jax, shared by the
-test workers: tests that build the same program again (a resumed training run, the
+test workers and the subprocesses they start: tests that build the same program again (a resumed training run, the
 command-line front ends after the library calls) load it instead of compiling. The key
 is the program, the flags and the jax version, so a stale entry is never used.
 """
@@ -18,7 +18,7 @@ _FLAG = "--xla_backend_optimization_level=0"
 if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
     os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} {_FLAG}".strip()
 
-import jax  # noqa: E402 (after XLA_FLAGS)
-
-jax.config.update("jax_compilation_cache_dir",
-                  str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
+# An environment variable rather than jax.config, so the command-line runs the tests start
+# as subprocesses use the cache too.
+os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
+                      str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))

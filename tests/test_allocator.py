@@ -71,3 +71,13 @@ def test_keep_freed_memory_caps_the_arenas():
     # Worker threads' arenas mmap any block over 64 MB; capped, most land on the main one.
     assert probe(ARENA_PROBE, "default") >= 3
     assert probe(ARENA_PROBE, "keep") == allocator.ARENAS
+
+
+@pytest.mark.parametrize("platforms, accelerator", [("cuda", True), ("tpu,cpu", True),
+                                                    ("cpu", False), ("CPU,cuda", False)])
+def test_tuning_is_skipped_where_jax_computes_on_an_accelerator(monkeypatch, platforms,
+                                                                accelerator):
+    monkeypatch.setenv("JAX_PLATFORMS", platforms)
+    assert allocator.accelerator_expected() is accelerator
+    if accelerator:
+        assert allocator.keep_freed_memory() is False

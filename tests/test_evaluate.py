@@ -3,6 +3,7 @@
 import csv
 import json
 import math
+import subprocess
 import sys
 import types
 from pathlib import Path
@@ -13,6 +14,7 @@ from scipy import stats
 
 from jaxmripp import config
 from jaxmripp.evaluation import cells, outputs, stats as evalstats, sweep
+from jaxmripp.parallel.local import host_devices_env
 
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"xla_backend_optimization_level": 0}  # compile fast; these tests run tiny worlds
@@ -172,16 +174,16 @@ def _cli():
     return cli
 
 
-def test_cli_same_seed_same_table(tiny_sweep, tmp_path, monkeypatch):
-    """eval.py on one shape of the sweep reproduces its numbers and table rows exactly."""
+def test_cli_on_two_devices_reproduces_the_sweep(tiny_sweep, tmp_path):
+    """eval.py on one shape of the sweep, its episodes split over 2 devices (a padded
+    chunk included), reproduces the 1-device numbers and table rows exactly."""
     _, result, _, _, _ = tiny_sweep
-    real = sweep.run_sweep
-    monkeypatch.setattr(sweep, "run_sweep",
-                        lambda *a, **k: real(*a, **{**k, "compiler_options": FAST, "batch": 4}))
-    code = _cli().main(["--config", str(ROOT / "configs" / "smoke.yaml"), "--out",
-                        str(tmp_path), "--no-render", "--no-timing", *TINY,
-                        "eval.team_sizes=[2]"])
-    assert code == 0
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "eval.py"), "--config", str(ROOT / "configs" / "smoke.yaml"),
+         "--out", str(tmp_path), "--no-render", "--no-timing", *TINY, "eval.team_sizes=[2]",
+         "eval.batch=4"],
+        cwd=ROOT, env=host_devices_env(2), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
     rows = list(csv.DictReader((tmp_path / "runs.csv").open()))
     two = [r for r in result.records() if r["n_robots"] == 2]
     assert rows == [{k: str(v) for k, v in r.items()} for r in two]

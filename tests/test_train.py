@@ -1,6 +1,9 @@
 """PPO and the training loop on the smoke config (one chunk compilation, shared)."""
 
 import json
+import shutil
+import subprocess
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -11,6 +14,11 @@ from jaxmripp import config as cfgmod
 from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
+from jaxmripp.parallel.local import host_devices_env, max_relative_difference, run_local
+from jaxmripp.parallel.mesh import data_parallel
+
+# Parameters of the same run on other device counts: only float32 sum orders differ.
+DEVICE_COUNT_TOLERANCE = 1e-5
 
 
 @pytest.fixture(scope="module")
@@ -137,3 +145,41 @@ def test_gae_matches_a_hand_computed_example():
     # t=2: 2 + 0.5*4 - 0.5 = 3.5; t=1 (terminal): 0 - 2 = -2; t=0: 1 + 0.5*2 - 1 + 0.25*(-2) = 0.5
     np.testing.assert_allclose(np.asarray(adv)[:, 0, 0], [0.5, -2.0, 3.5])
     np.testing.assert_allclose(np.asarray(targets)[:, 0, 0], [1.5, 0.0, 4.0])
+
+
+def _smoke_command(runs) -> list[str]:
+    return ["train.py", "--config", "configs/smoke.yaml", "--no-eval", "--runs", str(runs)]
+
+
+def _final_params(cfg, run_dir):
+    state = trainmod.restore(cfg, run_dir)
+    assert int(state.update) == cfg.train.updates
+    return state.params
+
+
+def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full_run,
+                                                                        tmp_path):
+    """Updates 2 and 3 on 2 devices, resumed from the 1-device run's first checkpoint."""
+    assert data_parallel().devices == 1  # full_run is the 1-device reference
+    run_dir = tmp_path / "run"
+    shutil.copytree(full_run[0], run_dir)
+    for later in ("2", "3"):
+        shutil.rmtree(run_dir / "checkpoints" / "last" / later)
+    shutil.rmtree(run_dir / "checkpoints" / "best")
+    done = subprocess.run([sys.executable, "train.py", "--resume", str(run_dir), "--no-eval"],
+                          env=host_devices_env(2), capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert f"resumed {run_dir} at update 1" in done.stdout
+    params = _final_params(cfg, run_dir)
+    assert max_relative_difference(params, full_run[1].params) <= DEVICE_COUNT_TOLERANCE
+
+
+def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
+    results = run_local(_smoke_command(tmp_path), processes=2, timeout_s=300)
+    for result in results:
+        assert result.returncode == 0, result.stderr[-2000:]
+    assert "run folder" in results[0].stdout and "run folder" not in results[1].stdout
+    assert [p.name for p in tmp_path.iterdir()] == [cfg.train.name]  # one folder for both
+    assert len(trainmod.read_metrics(tmp_path / cfg.train.name)) == cfg.train.updates
+    params = _final_params(cfg, tmp_path / cfg.train.name)
+    assert max_relative_difference(params, full_run[1].params) <= DEVICE_COUNT_TOLERANCE

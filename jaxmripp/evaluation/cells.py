@@ -28,6 +28,7 @@ from flax import struct
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import env as envmod
 from jaxmripp.sim import episode
+from jaxmripp.parallel.mesh import data_parallel
 from jaxmripp.sim.params import DynamicParams, EnvParams, stack
 
 TRACES: collections.Counter = collections.Counter()  # (planner, N, G) -> times traced
@@ -169,12 +170,14 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
 
     Episodes are ordered cell-major, then world-major (episode w * trials + t). The last
     chunk is padded with repeats of the last episode so every chunk has the compiled
-    shape. `compiler_options` go to XLA (tests pass {"xla_backend_optimization_level": 0}
-    to compile faster at the cost of slower code).
+    shape; a chunk is split over every device (`parallel.mesh`). `compiler_options` go
+    to XLA (tests pass {"xla_backend_optimization_level": 0} to compile faster at the cost
+    of slower code).
     """
     per_cell, total = worlds * trials, len(shapes) * worlds * trials
     inputs = _episode_inputs(shapes, dynamics, seed, worlds, trials)
-    batch = min(total, batch or auto_batch(params))
+    data = data_parallel()
+    batch = data.round_up(min(total, batch or auto_batch(params)))
     chunks = -(-total // batch)
     pad = chunks * batch - total
     inputs = jax.tree.map(lambda x: jnp.concatenate([x, jnp.repeat(x[-1:], pad, axis=0)]),
@@ -185,15 +188,16 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
         return jax.vmap(lambda w, t, d: run_trial(w, t, params, d, planner))(
             world_key, trial_key, dyn)
 
-    first = jax.tree.map(lambda x: x[:batch], inputs)
+    def part(c: int):
+        return data.put_split(jax.tree.map(lambda x: x[c * batch:(c + 1) * batch], inputs))
+
     start = time.perf_counter()
-    compiled = jax.jit(batched).lower(*first).compile(compiler_options)
+    compiled = jax.jit(batched).lower(*part(0)).compile(compiler_options)
     compile_s = time.perf_counter() - start
     outputs = []
     start = time.perf_counter()
     for c in range(chunks):
-        part = jax.tree.map(lambda x: x[c * batch:(c + 1) * batch], inputs)
-        outputs.append(jax.tree.map(np.asarray, jax.block_until_ready(compiled(*part))))
+        outputs.append(data.gather(jax.block_until_ready(compiled(*part(c)))))
     run_s = time.perf_counter() - start
     result, snap = jax.tree.map(lambda *xs: np.concatenate(xs)[:total], *outputs)
     ms = 1000.0 * run_s / (chunks * batch * params.max_steps * params.n_robots)

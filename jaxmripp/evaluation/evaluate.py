@@ -30,6 +30,7 @@ from jaxmripp.config import Config
 from jaxmripp.evaluation import baselines
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_counts
 from jaxmripp.evaluation.planners import eval_setting
+from jaxmripp.parallel.mesh import data_parallel
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import episode
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -81,7 +82,11 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
     """{planner name: per-episode arrays + planning time per step per robot (ms)}.
 
     Each planner is compiled ahead of time, so its one run is timed without compilation.
+    The episodes are split over every device (`parallel.mesh`).
     """
+    data = data_parallel()
+    count = len(keys)
+    keys, dyn = data.put_batch(keys), data.put_replicated(dyn)
     out = {}
     for planner in planners:
         start = time.perf_counter()
@@ -90,7 +95,8 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
         start = time.perf_counter()
         result = jax.block_until_ready(compiled(keys, dyn))
         run_s = time.perf_counter() - start
-        steps = max(float(np.asarray(result.steps).sum()) * params.n_robots, 1.0)
+        result = data.gather(result, count)
+        steps = max(float(result.steps.sum()) * params.n_robots, 1.0)
         out[planner.name] = {
             "discovered": np.asarray(result.discovered_fraction) * 100.0,
             "safety": safety_counts(result),

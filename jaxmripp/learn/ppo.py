@@ -4,6 +4,10 @@ Every robot of every environment is a sample of one shared policy (CTDE). Shapes
 rollout steps, E environments, N robots, W memory width. The recurrent memory is stored
 with each transition and fed back unchanged in the update (one-step truncated
 backpropagation through time), so minibatches of whole environments stay consistent.
+
+With a `DataParallel` layout every E-axis array is kept split over the devices (the
+environments step where they live, a minibatch's gradient is summed across devices by the
+compiler); without one the functions are plain single-device code.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
+from jaxmripp.parallel.mesh import DataParallel
 
 
 @struct.dataclass
@@ -88,23 +93,28 @@ def apply_batched(network: ActorCritic, params, memory, obs: Observation):
     return unflat(new_memory), unflat(logits), unflat(value)
 
 
-def start_runner(key, cfg: Config, params: EnvParams, dyn: DynamicParams) -> Runner:
-    obs, state = jax.vmap(envmod.reset, in_axes=(0, None, None))(
-        jax.random.split(key, cfg.train.envs), params, dyn)
+def _split(tree, data: DataParallel | None, axis: int = 0):
+    return tree if data is None else data.constrain(tree, axis)
+
+
+def start_runner(key, cfg: Config, params: EnvParams, dyn: DynamicParams,
+                 data: DataParallel | None = None) -> Runner:
+    keys = _split(jax.random.split(key, cfg.train.envs), data)
+    obs, state = jax.vmap(envmod.reset, in_axes=(0, None, None))(keys, params, dyn)
     memory = jnp.broadcast_to(initial_memory(cfg.policy),
                               (cfg.train.envs, params.n_robots, cfg.policy.width))
-    return Runner(state, obs, memory, jnp.zeros((cfg.train.envs, params.n_robots)))
+    return _split(Runner(state, obs, memory, jnp.zeros((cfg.train.envs, params.n_robots))), data)
 
 
 def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
-            params: EnvParams, dyn: DynamicParams):
+            params: EnvParams, dyn: DynamicParams, data: DataParallel | None = None):
     """Steps every environment `rollout_steps` times; returns (runner, transitions, stats).
 
     `params` is static (jit it as a closure or static argument), `dyn` may be traced."""
     envs = cfg.train.envs
     key_pool, key_steps = jax.random.split(key)
-    reset_obs, reset_state = jax.vmap(envmod.reset, in_axes=(0, None, None))(
-        jax.random.split(key_pool, envs), params, dyn)
+    reset_obs, reset_state = _split(jax.vmap(envmod.reset, in_axes=(0, None, None))(
+        _split(jax.random.split(key_pool, envs), data), params, dyn), data)
     max_resets = max(1, math.ceil(cfg.train.reset_share * envs))
 
     def body(carry, key):
@@ -116,8 +126,8 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         log_prob = dist.log_prob(action)
         active = jnp.any(runner.obs.mask, axis=-1)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
-            jax.random.split(key_env, envs), runner.env_state, action, params, dyn, reset_obs,
-            reset_state, max_resets, pool_used)
+            _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
+            dyn, reset_obs, reset_state, max_resets, pool_used)
         terminal = (done & active) | ended[:, None]
         memory = jnp.where(ended[:, None, None], initial_memory(cfg.policy), memory)
         ret = runner.episode_return + reward
@@ -131,7 +141,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
                                 terminal, active)
-        return (Runner(state, obs, memory, ret), pool_used), (transition, stats)
+        return (_split(Runner(state, obs, memory, ret), data), pool_used), (transition, stats)
 
     (runner, _), (transitions, stats) = jax.lax.scan(
         body, (runner, jnp.zeros((), jnp.int32)),
@@ -144,7 +154,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         reward_parts=(stats.reward_parts * weights).sum(axis=(0, 2))
         / jnp.maximum(weights.sum(), 1),
     )
-    return runner, transitions, summary
+    return runner, _split(transitions, data, axis=1), summary
 
 
 def gae(transitions: Transition, last_value, discount: float, lam: float):
@@ -185,7 +195,7 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets, cfg: PP
 
 
 def update(key, net_params, opt_state, network, optimizer, transitions: Transition,
-           last_value, cfg: PPOConfig):
+           last_value, cfg: PPOConfig, data: DataParallel | None = None):
     """Epochs x minibatches of whole environments; returns params, opt_state, losses."""
     advantages, targets = gae(transitions, last_value, cfg.discount, cfg.gae_lambda)
     envs = transitions.reward.shape[1]
@@ -198,7 +208,7 @@ def update(key, net_params, opt_state, network, optimizer, transitions: Transiti
 
         def minibatch(carry, index):
             net_params, opt_state = carry
-            take = lambda x: x[:, index]
+            take = lambda x: _split(x[:, index], data, axis=1)
             (_, aux), grads = grad_fn(net_params, network, jax.tree.map(take, transitions),
                                       take(advantages), take(targets), cfg)
             updates, opt_state = optimizer.update(grads, opt_state, net_params)

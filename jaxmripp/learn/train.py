@@ -4,6 +4,10 @@ A chunk (train.updates_per_chunk updates) is one compiled call. Environments res
 every chunk boundary, so a checkpoint needs only the network, the optimiser state, the
 seed key and the update counter, and a resumed run repeats an uninterrupted one exactly.
 Every random draw is keyed by `fold_in(seed key, update)`.
+
+The environments are split over every device of every process (`parallel.mesh`); the
+state is replicated. Process 0 alone writes config.yaml and metrics.jsonl and logs; every
+process takes part in the checkpoints, as orbax expects.
 """
 
 from __future__ import annotations
@@ -27,6 +31,7 @@ from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.learn.policy import initial_memory
+from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
 
 
 @struct.dataclass
@@ -40,24 +45,34 @@ class TrainState:
 @dataclass
 class Trainer:
     """Everything about a run but its state: config, static and dynamic env params,
-    network, optimiser and the jitted chunk, `chunk(state, env_dynamic)`."""
+    network, optimiser, the device layout and the jitted chunk, `chunk(state, env_dynamic)`
+    (both arguments replicated over `data`'s devices, e.g. by `place`)."""
 
     cfg: Config
     env_params: EnvParams
     env_dynamic: DynamicParams
     network: Any
     optimizer: Any
+    data: DataParallel
     chunk: Callable[[TrainState, DynamicParams], tuple[TrainState, dict]]
 
     @classmethod
     @functools.lru_cache(maxsize=8)
     def build(cls, cfg: Config) -> "Trainer":
         """Cached per config, so a resumed run in the same process reuses the compiled chunk."""
+        data = data_parallel()
         env_params = EnvParams.from_config(cfg)
         network = ppo.make_network(cfg)
         optimizer = ppo.make_optimizer(cfg.ppo)
-        return cls(cfg, env_params, DynamicParams.from_config(cfg), network, optimizer,
-                   jax.jit(_chunk_fn(cfg, env_params, network, optimizer), donate_argnums=0))
+        replicated = data.replicated
+        chunk = jax.jit(_chunk_fn(cfg, env_params, network, optimizer, data), donate_argnums=0,
+                        in_shardings=replicated, out_shardings=replicated)
+        return cls(cfg, env_params, data.put_replicated(DynamicParams.from_config(cfg)),
+                   network, optimizer, data, chunk)
+
+    def place(self, state: TrainState) -> TrainState:
+        """The state replicated over the devices (every process passes the same state)."""
+        return self.data.put_replicated(state)
 
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
@@ -73,16 +88,16 @@ def example_observation(params: EnvParams, dyn: DynamicParams):
     return jax.tree.map(lambda s: jnp.zeros(s.shape[1:], s.dtype), shapes)
 
 
-def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):
+def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: DataParallel):
     def one_update(dyn, carry, _):
         state, runner = carry
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
         runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
-                                                 cfg, env_params, dyn)
+                                                 cfg, env_params, dyn, data)
         _, _, last_value = ppo.apply_batched(network, state.params, runner.memory, runner.obs)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
-                                               cfg.ppo)
+                                               cfg.ppo, data)
         active = transitions.active.astype(jnp.float32)
         metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
                        return_sum=stats.episode_return, reward_parts=stats.reward_parts,
@@ -91,7 +106,7 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer):
 
     def chunk(state: TrainState, dyn: DynamicParams):
         key_start = jax.random.fold_in(jax.random.fold_in(state.key, state.update), 1 << 29)
-        runner = ppo.start_runner(key_start, cfg, env_params, dyn)
+        runner = ppo.start_runner(key_start, cfg, env_params, dyn, data)
         (state, _), metrics = jax.lax.scan(functools.partial(one_update, dyn), (state, runner),
                                            None, length=cfg.train.updates_per_chunk)
         return state, metrics
@@ -129,17 +144,23 @@ def fresh_run_dir(root: Path, name: str) -> Path:
 
 def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: int | None = None,
           log: Callable[[str], None] = print) -> TrainState:
-    """Trains into run_dir (config.yaml, metrics.jsonl, checkpoints/); returns the state."""
+    """Trains into run_dir (config.yaml, metrics.jsonl, checkpoints/); returns the state.
+
+    A checkpoint restores onto whatever devices this run has (the state is replicated),
+    so a run may resume with another device or process count."""
+    main = is_main_process()
+    log = log if main else (lambda _: None)
     run_dir.mkdir(parents=True, exist_ok=True)
     trainer = Trainer.build(cfg)
+    trainer.data.check_divides(cfg.train.envs, "train.envs")
+    trainer.data.check_divides(cfg.train.envs // cfg.ppo.minibatches,
+                               "train.envs / ppo.minibatches (environments per minibatch)")
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    # placed on the device explicitly, as a restored checkpoint is, so that a fresh and a
-    # resumed run compile the same program (and share JAX's compilation cache)
-    state = jax.device_put(trainer.init(), jax.devices()[0])
+    state = trainer.place(trainer.init())
     if resume and checkpoints.latest_step() is not None:
         state = checkpoints.restore(state)
         log(f"resumed {run_dir} at update {int(state.update)}")
-    else:
+    elif main:
         (run_dir / "config.yaml").write_text(cfgmod.to_yaml(cfg))
         (run_dir / "metrics.jsonl").write_text("")
     samples_per_update = cfg.train.envs * cfg.train.rollout_steps * cfg.robots.count
@@ -158,8 +179,9 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
                       seconds=round(seconds, 2),
                       agent_steps_per_s=round(cfg.train.updates_per_chunk * samples_per_update
                                               / seconds, 1))
-        with open(run_dir / "metrics.jsonl", "a") as fh:
-            fh.write(json.dumps(record) + "\n")
+        if main:
+            with open(run_dir / "metrics.jsonl", "a") as fh:
+                fh.write(json.dumps(record) + "\n")
         checkpoints.save(updates, state, record["discovered"])
         log(f"chunk {index + 1}/{total_chunks}  updates {updates}  "
             f"agent-steps {record['env_steps']:,}  {record['agent_steps_per_s']:,.0f}/s  "
@@ -167,6 +189,15 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
             f"entropy {record['entropy']:.2f}  value-loss {record['value_loss']:.3f}")
     checkpoints.close()
     return state
+
+
+def restore(cfg: Config, run_dir: Path, best: bool = False) -> TrainState:
+    """A run's last (or best) checkpoint, on the default device."""
+    checkpoints = Checkpoints(Path(run_dir) / "checkpoints", cfg.train.keep_checkpoints)
+    try:
+        return checkpoints.restore(Trainer.build(cfg).init(), best=best)
+    finally:
+        checkpoints.close()
 
 
 def read_metrics(run_dir: Path) -> list[dict]:

@@ -1,0 +1,74 @@
+"""Training in 1 and in P local processes (one CPU device each) on the same global batch.
+
+Prints JSON lines:
+    distributed.max_param_rel_diff   largest relative parameter difference, P processes vs 1
+    distributed.samples_per_s.p1     agent-steps per second of training, 1 process
+    distributed.samples_per_s.p<P>   the same with P processes
+(rates are medians over the chunks after the first, which compiles).
+
+Usage: python benchmarks/distributed.py [--processes 2] [--config configs/default.yaml]
+           [override ...]   (default overrides: a 32-environment, 4-update run)
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import tempfile
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+from common import emit  # noqa: E402
+from jaxmripp import config as cfgmod  # noqa: E402
+
+SMALL = ["train.envs=32", "train.updates=4", "train.updates_per_chunk=1", "ppo.minibatches=4"]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("overrides", nargs="*", default=SMALL)
+    args = parser.parse_args(argv)
+    if args.processes < 2:
+        parser.error(f"--processes: got {args.processes}; allowed: 2 or more")
+    try:
+        cfg = cfgmod.load(args.config, args.overrides)
+    except cfgmod.ConfigError as err:
+        parser.error(str(err))
+
+    from jaxmripp.learn.train import restore  # noqa: PLC0415
+    from jaxmripp.parallel.local import max_relative_difference, run_local  # noqa: PLC0415
+
+    params, rates = {}, {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for processes in (1, args.processes):
+            runs = Path(tmp) / f"p{processes}"
+            command = ["train.py", "--config", args.config, *args.overrides, "--no-eval",
+                       "--runs", str(runs)]
+            for i, result in enumerate(run_local(command, processes, timeout_s=3600)):
+                if result.returncode:
+                    print(f"process {i} of {processes} failed:\n{result.stderr[-3000:]}",
+                          file=sys.stderr)
+                    return 1
+            run_dir = runs / cfg.train.name
+            records = [json.loads(line) for line in
+                       (run_dir / "metrics.jsonl").read_text().splitlines()]
+            rates[processes] = statistics.median(
+                r["agent_steps_per_s"] for r in (records[1:] or records))
+            params[processes] = restore(cfg, run_dir).params
+    emit("distributed.max_param_rel_diff",
+         max_relative_difference(params[args.processes], params[1]), "ratio")
+    emit("distributed.samples_per_s.p1", rates[1], "agent-steps/s")
+    emit(f"distributed.samples_per_s.p{args.processes}", rates[args.processes], "agent-steps/s")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
