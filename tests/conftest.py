@@ -22,3 +22,13 @@ if "xla_backend_optimization_level" not in os.environ.get("XLA_FLAGS", ""):
 # as subprocesses use the cache too.
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
+
+# Files whose compilations take longest, started first: `make test` hands whole files to two
+# workers in collection order, so a long file collected last would run alone at the end.
+LONGEST_FIRST = ("test_train.py", "test_env.py", "test_evaluate.py", "test_runtime_episode.py",
+                 "test_runtime_parity.py", "test_pipeline.py", "test_export.py", "test_rig.py")
+
+
+def pytest_collection_modifyitems(config, items):
+    rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
+    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
