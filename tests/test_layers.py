@@ -1,4 +1,5 @@
-"""The package's import arrows point one way: spec <- config <- sim <- learn <- evaluation.
+"""The package's import arrows point one way: spec <- config <- parallel <- sim <- learn <-
+evaluation.
 
 Top-level modules (pipeline, export, demo, allocator) sit above every package; the runtime
 imports only itself and the spec, and no package imports the runtime or a top-level module.
@@ -12,7 +13,7 @@ from pathlib import Path
 import jaxmripp
 
 PACKAGE = Path(jaxmripp.__file__).parent
-LAYERS = ("spec", "config", "sim", "learn", "evaluation")
+LAYERS = ("spec", "config", "parallel", "sim", "learn", "evaluation")
 
 
 def imported_subpackages(path: Path) -> set[str]:

@@ -116,7 +116,12 @@ def _gather(launch: Launch, deadline: float) -> None:
     """Process 0: wait for ids 1 .. processes - 1, then tell everyone whether to go on."""
     peers: dict[int, socket.socket] = {}
     problem = ""
-    with socket.create_server(("", launch.address[1]), reuse_port=False) as server:
+    try:
+        server = socket.create_server(("", launch.address[1]))
+    except OSError as err:
+        raise LaunchError(f"process 0: cannot listen on port {launch.address[1]} for the "
+                          f"check-in ({err.strerror}); choose another --coordinator port") from None
+    with server:
         while len(peers) < launch.processes - 1 and not problem:
             server.settimeout(max(deadline - time.monotonic(), 0.01))
             try:
@@ -128,8 +133,9 @@ def _gather(launch: Launch, deadline: float) -> None:
                            f"{', '.join(map(str, missing))}); is --processes right?")
                 break
             words = _read_line(conn, deadline).split()
-            if len(words) != 4 or " ".join(words[:2]) != GREETING:
-                conn.close()
+            if (len(words) != 4 or " ".join(words[:2]) != GREETING
+                    or not (words[2].isdigit() and words[3].isdigit())):
+                conn.close()  # not one of ours
                 continue
             pid, count = int(words[2]), int(words[3])
             if count != launch.processes:
