@@ -7,7 +7,7 @@ Prints JSON lines:
 (rates are medians over the chunks after the first, which compiles).
 
 Usage: python benchmarks/distributed.py [--processes 2] [--config configs/default.yaml]
-           [override ...]   (default overrides: a 32-environment, 4-update run)
+           [--keep DIR] [override ...]   (default overrides: a 32-environment, 4-update run)
 """
 
 from __future__ import annotations
@@ -34,6 +34,8 @@ def main(argv=None) -> int:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("--keep", type=Path, help="keep the run folders here (default: a "
+                        "temporary folder)")
     parser.add_argument("overrides", nargs="*", default=SMALL)
     args = parser.parse_args(argv)
     if args.processes < 2:
@@ -49,7 +51,7 @@ def main(argv=None) -> int:
     params, rates = {}, {}
     with tempfile.TemporaryDirectory() as tmp:
         for processes in (1, args.processes):
-            runs = Path(tmp) / f"p{processes}"
+            runs = (args.keep or Path(tmp)) / f"p{processes}"
             command = ["train.py", "--config", args.config, *args.overrides, "--no-eval",
                        "--runs", str(runs)]
             for i, result in enumerate(run_local(command, processes, timeout_s=3600)):
