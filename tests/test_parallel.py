@@ -47,16 +47,24 @@ def test_unreachable_coordinator_fails_within_seconds_with_one_line(tmp_path):
         "running, and is --coordinator its HOST:PORT?"]
 
 
+def _check_in_error(settings: launch.Launch) -> str:
+    """The check-in of one process (process 0 gathers): its error line, or ""."""
+    deadline = time.monotonic() + settings.timeout_s
+    try:
+        if settings.process_id == 0:
+            launch._gather(settings, deadline)
+        else:
+            launch._check_in(settings, deadline)
+    except launch.LaunchError as err:
+        return str(err)
+    return ""
+
+
 def _launch_in_thread(settings: launch.Launch, errors: dict) -> threading.Thread:
+    """Runs the check-in in a thread; a failure goes to errors[process id]."""
     def check_in():
-        deadline = time.monotonic() + settings.timeout_s
-        try:
-            if settings.process_id == 0:
-                launch._gather(settings, deadline)
-            else:
-                launch._check_in(settings, deadline)
-        except launch.LaunchError as err:
-            errors[settings.process_id] = str(err)
+        if error := _check_in_error(settings):
+            errors[settings.process_id] = error
 
     thread = threading.Thread(target=check_in)
     thread.start()
@@ -92,6 +100,21 @@ def test_check_in_names_a_wrong_process_count():
         thread.join()
     assert errors == {0: "process 1 was started with --processes 3, process 0 with 2",
                       1: "process 1 was started with --processes 3, process 0 with 2"}
+
+
+def test_check_in_names_a_repeated_process_id():
+    address = f"127.0.0.1:{free_port_pair()}"
+    errors = {}
+    first = _launch_in_thread(launch.Launch(3, 0, address, 5.0), errors)
+    repeated = [[], []]
+    threads = [threading.Thread(target=lambda out=out: out.append(_check_in_error(
+        launch.Launch(3, 1, address, 5.0)))) for out in repeated]
+    for thread in threads:
+        thread.start()
+    for thread in [first, *threads]:
+        thread.join()
+    message = "two processes were started with --process-id 1"
+    assert errors == {0: message} and repeated == [[message], [message]]
 
 
 @pytest.mark.parametrize("kwargs, message", [

@@ -115,12 +115,14 @@ def barrier(name: str) -> None:
 def _gather(launch: Launch, deadline: float) -> None:
     """Process 0: wait for ids 1 .. processes - 1, then tell everyone whether to go on."""
     peers: dict[int, socket.socket] = {}
+    extra: list[socket.socket] = []  # a second process with an id already checked in
     problem = ""
     try:
         server = socket.create_server(("", launch.address[1]))
     except OSError as err:
         raise LaunchError(f"process 0: cannot listen on port {launch.address[1]} for the "
-                          f"check-in ({err.strerror}); choose another --coordinator port") from None
+                          f"check-in ({err.strerror}); choose another --coordinator port"
+                          ) from None
     with server:
         while len(peers) < launch.processes - 1 and not problem:
             server.settimeout(max(deadline - time.monotonic(), 0.01))
@@ -141,11 +143,14 @@ def _gather(launch: Launch, deadline: float) -> None:
             if count != launch.processes:
                 problem = (f"process {pid} was started with --processes {count}, process 0 "
                            f"with {launch.processes}")
-            elif pid in peers:
+            elif pid in peers or pid == 0:
                 problem = f"two processes were started with --process-id {pid}"
-            peers[pid] = conn
+            if pid in peers:
+                extra.append(conn)
+            else:
+                peers[pid] = conn
         reply = f"error: {problem}" if problem else "ok"
-        for conn in peers.values():
+        for conn in [*peers.values(), *extra]:
             try:
                 conn.sendall((reply + "\n").encode())
             finally:
