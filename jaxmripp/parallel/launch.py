@@ -28,6 +28,7 @@ ENV_COORDINATOR = "JAX_COORDINATOR_ADDRESS"  # JAX's own name
 ENV_PROCESSES = "JAXMRIPP_PROCESSES"
 ENV_PROCESS_ID = "JAXMRIPP_PROCESS_ID"
 GREETING = "jaxmripp-launch 1"
+REPLY_GRACE_S = 5.0  # how much longer than --launch-timeout a process waits for process 0
 
 
 class LaunchError(RuntimeError):
@@ -174,7 +175,8 @@ def _check_in(launch: Launch, deadline: float) -> None:
             time.sleep(0.2)
     with conn:
         conn.sendall(f"{GREETING} {launch.process_id} {launch.processes}\n".encode())
-        reply = _read_line(conn, deadline)
+        # process 0 answers at the latest at its own deadline, which may be a little later
+        reply = _read_line(conn, deadline + REPLY_GRACE_S)
     if reply != "ok":
         raise LaunchError(reply.removeprefix("error: ") or
                           f"process {launch.process_id}: process 0 closed the check-in")
