@@ -108,6 +108,29 @@ def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed):
     np.testing.assert_allclose(np.asarray(facade), expected[..., 1], atol=1e-6)
 
 
+def test_gain_in_a_large_world_equals_the_runtime():
+    """At G = 125 the weight totals pass 2^15 (the packed one-accumulator sum no longer
+    fits): the JAX gain still equals the NumPy runtime's, pose by pose."""
+    from jaxmripp.runtime import view as runtime_view
+
+    size, sensor = 125, SensorConfig()
+    assert spec.RAYS_PER_SIDE**2 * int(spec.gain_table(sensor.fov_deg, sensor.range,
+                                                       size)[1].sum()) >= 1 << 15
+    rng = np.random.default_rng(7)
+    occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(size,) * 3,
+                           p=[0.6, 0.38, 0.02]).astype(np.int8)
+    top = np.max(np.where(occupancy == OCCUPIED, np.arange(size) + 1, 0),
+                 axis=-1).astype(np.int8)
+    position = rng.uniform(0.2, 0.8, (3, 3)).astype(np.float32)
+    unknown, facade = gain(occupancy, top, position, sensor, size)
+    poses, headings = np.repeat(position, 4, axis=0), np.tile(np.arange(4), 3)
+    expected = runtime_view.view_gain(occupancy.reshape(-1), top, poses, headings,
+                                      sensor.fov_deg, sensor.range, size)
+    assert np.asarray(facade).max() > 0
+    np.testing.assert_allclose(np.asarray(unknown).reshape(-1), expected[0], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(facade).reshape(-1), expected[1], atol=1e-6)
+
+
 def test_tops_follow_the_cast_writes():
     rng = np.random.default_rng(3)
     voxels = rng.integers(0, G**3 + 5, 200).astype(np.int32)  # some beyond the grid

@@ -87,20 +87,31 @@ def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
     _, code, weights = _sample_codes(occupancy, top, position, sensor, size)
     rays = spec.RAYS_PER_SIDE**2
-    scale = np.float32(1) / np.float32(rays * int(weights.sum()))
-    # Integer sums, exact in any order: unknown weight in the low 16 bits, facade weight
-    # above (each total is at most R * sum(d^2), far below 2^16 at any sensible range).
-    assert rays * int(weights.sum()) < 1 << 15
-    summed = jnp.zeros(code.shape[1:], jnp.int32)
+    total = rays * int(weights.sum())
+    scale = np.float32(1) / np.float32(total)
+    # Integer sums, exact in any order. While both totals fit 15 bits (ranges up to about
+    # 75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
+    # above, so each sample costs one accumulation instead of two.
+    packed = total < 1 << 15
+    unknown_sum = jnp.zeros(code.shape[1:], jnp.int32)
+    facade_sum = jnp.zeros(code.shape[1:], jnp.int32)
     clear = jnp.ones(code.shape[1:], bool)
     for s, w in enumerate(weights.astype(int)):
         unknown = clear & ((code[s] == UNKNOWN) | (code[s] == FACADE))
         facade = clear & (code[s] == FACADE)
-        summed = summed + jnp.where(unknown, jnp.int32(w), 0) + jnp.where(facade, jnp.int32(w << 16), 0)
+        if packed:
+            unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0) \
+                + jnp.where(facade, jnp.int32(w << 16), 0)
+        else:
+            unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0)
+            facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
         clear = clear & (code[s] != OCCUPIED)
-    summed = summed.reshape(position.shape[0], 4, rays).sum(-1)
-    return ((summed & 0xFFFF).astype(jnp.float32) * scale,
-            (summed >> 16).astype(jnp.float32) * scale)
+    unknown_sum = unknown_sum.reshape(position.shape[0], 4, rays).sum(-1)
+    if packed:
+        unknown_sum, facade_sum = unknown_sum & 0xFFFF, unknown_sum >> 16
+    else:
+        facade_sum = facade_sum.reshape(position.shape[0], 4, rays).sum(-1)
+    return unknown_sum.astype(jnp.float32) * scale, facade_sum.astype(jnp.float32) * scale
 
 
 def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
