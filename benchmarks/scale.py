@@ -9,9 +9,19 @@ envs x N agent-steps. Figures (JSON lines):
     scale.cost_growth_n<max>_vs_n<min>  the first over the last, e.g. n64_vs_n3
     scale.peak_rss_mb              the process's peak resident memory (all N)
 
+With --eval, the largest team then plays the cell the paper lost (16x world, N = 64,
+rho = 0.12, per-robot budget 10 / 3) on W held-out random-layout worlds: the policy with
+single-hop exchange and with relay at rho, and the policy, coordinated and nbv_team with
+global communication (rho = inf: everyone hears everyone every step). Figures:
+
+    scale.pct.<planner>.<single_hop|relay|global>   mean % of windows found (95% CI)
+    scale.relay_vs_best_global_<R>x   relay over the best planner with global
+                                      communication (R: world volume over G = 50's)
+    scale.relay_vs_best_global_p      Welch p of that comparison
+
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
-        [--set key=value ...]
+        [--eval --worlds W --policy pretrained/default] [--set key=value ...]
 """
 
 from __future__ import annotations
@@ -24,7 +34,9 @@ import sys
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import RandomTeamStepper, emit, median_seconds  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+from common import RandomTeamStepper, emit, emit_p, median_seconds  # noqa: E402
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
@@ -38,7 +50,14 @@ def main(argv=None) -> int:
     parser.add_argument("--envs", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("--eval", action="store_true", help="also evaluate the largest team")
+    parser.add_argument("--worlds", type=int, default=4, help="worlds of the --eval cell")
+    parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
+                        help="trained run or shipped folder for --eval")
     args = parser.parse_args(argv)
+    if args.eval and not (args.policy / "config.yaml").is_file():
+        print(f"error: --policy {args.policy}: no config.yaml there", file=sys.stderr)
+        return 2
     teams = sorted(int(n) for n in args.teams.split(","))
     micros = {}
     for n in teams:
@@ -61,7 +80,44 @@ def main(argv=None) -> int:
     emit(f"scale.cost_growth_n{last}_vs_n{first}", micros[last] / micros[first], "ratio")
     # ru_maxrss is in kilobytes on Linux
     emit("scale.peak_rss_mb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "MB")
+    if args.eval:
+        evaluate_cell(args.policy, last, args.size, args.radio_range, args.worlds, args.set)
     return 0
+
+
+def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: int,
+                  overrides: list[str]) -> None:
+    from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
+    from jaxmripp.evaluation import stats, sweep  # noqa: PLC0415
+
+    run_cfg = config.load(policy / "config.yaml")
+    planner = pipeline.trained_planner(run_cfg, policy)
+    cell = [f"eval.team_sizes=[{n}]", f"eval.world_sizes=[{size}]", "eval.budgets=[3.3333333]",
+            "eval.budget_mode=per_robot", f"eval.worlds={worlds}", "eval.trials=1",
+            "eval.layout=random", "eval.seed=2000", "eval.render=false", "eval.pairs=[]",
+            *overrides]
+    exchanges = {
+        "global": [*cell, "eval.radio_ranges=[.inf]", "eval.planners=[policy, coordinated, nbv_team]"],
+        "single_hop": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]"],
+        "relay": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
+                  "radio.relay=true"],
+    }
+    found = {}
+    for exchange, settings in exchanges.items():
+        cfg = config.load(policy / "config.yaml", settings)
+        result = sweep.run_sweep(cfg, {"policy": planner}, time_planning=False,
+                                 keep_pictures=False, log=lambda line: print(line, file=sys.stderr))
+        for run in result.runs:
+            found[run.planner, exchange] = run.discovered
+            mean, std, half = stats.mean_ci(run.discovered)
+            emit(f"scale.pct.{run.planner}.{exchange}", mean, "%", std=round(std, 2),
+                 ci95_half=round(half, 2), worlds=worlds, n=n, size=size)
+    best = max((k for k in found if k[1] == "global"), key=lambda k: found[k].mean())
+    relay = found["policy", "relay"]
+    ratio = round((size / config.REFERENCE_SIZE) ** 3)
+    emit(f"scale.relay_vs_best_global_{ratio}x",
+         relay.mean() / max(found[best].mean(), 1e-9), "ratio", best_global=best[0])
+    emit_p("scale.relay_vs_best_global_p", stats.welch_ttest(relay, found[best])[2])
 
 
 if __name__ == "__main__":
