@@ -6,12 +6,10 @@ import json
 from pathlib import Path
 from typing import Callable
 
-import jax
 import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
 from jaxmripp.evaluation.planners import baseline_planner, policy_planner
-from jaxmripp.sim import episode
 from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.runtime import weights as weights_format
 from jaxmripp.config import Config
@@ -47,8 +45,7 @@ def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,
     dyn = evaluate.eval_dynamic(cfg, cfg.train.eval_budget)
     keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
     results = evaluate.compare(planners, params, dyn, keys, compiler_options)
-    shown = jax.jit(lambda k, d: episode.run(k, params, d, planners[0]),
-                    compiler_options=compiler_options)(keys[0], dyn)
+    shown = results[planners[0].name]["first_episode"]
     title = (f"{cfg.train.eval_worlds} held-out random-layout worlds, N = {params.n_robots}, "
              f"B = {cfg.train.eval_budget}, rho = {cfg.radio.range}")
     table = evaluate.summary_table(results, title)

@@ -61,14 +61,18 @@ def eval_dynamic(cfg: Config, budget: float, radio_range: float | None = None) -
 
 @functools.partial(jax.jit, static_argnames=("params", "planner"))
 def run_episodes(keys: jax.Array, params: EnvParams, dyn: DynamicParams, planner: Planner):
-    """Runs len(keys) episodes in one vmapped call; drops the bulky final states.
+    """Runs len(keys) episodes in one vmapped call. Of each final state only what a picture
+    of the episode needs is kept (the world, the robots and the windows found): maps, GPs,
+    histories and candidates are dropped, being the bulk of it.
 
     Compiled once per (params, planner, number of keys): pass the same planner object.
     """
 
     def one(key):
         result = episode.run(key, params, dyn, planner)
-        return result.replace(final_state=None)
+        return result.replace(final_state=result.final_state.replace(
+            occupancy=None, building_top=None, history_pose=None, history_utility=None,
+            utility_gp=None, comm_gp=None, candidates=None))
 
     return jax.vmap(one)(keys)
 
@@ -79,7 +83,9 @@ def episode_keys(seed: int, count: int) -> jax.Array:
 
 def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
             keys: jax.Array, compiler_options: dict | None = None) -> dict[str, dict]:
-    """{planner name: per-episode arrays + planning time per step per robot (ms)}.
+    """{planner name: per-episode arrays, planning time per step per robot (ms) and the
+    first episode (an unbatched `episode.EpisodeResult` with run_episodes' slim final
+    state, for a picture)}.
 
     Each planner is compiled ahead of time, so its one run is timed without compilation.
     The episodes are split over every device (`parallel.mesh`).
@@ -105,6 +111,7 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
             "compile_s": seconds,
             "curve_discovered": np.asarray(result.trajectory.discovered_fraction) * 100.0,
             "curve_budget": np.asarray(result.trajectory.budget_used),
+            "first_episode": jax.tree.map(lambda x: x[0], result),
         }
     return out
 
