@@ -276,6 +276,9 @@ def test_observation_shapes_and_mask(rollout):
         mask, done = np.asarray(obs.mask), np.asarray(state.done)
         assert not mask[done].any()  # a done robot has nothing to choose
         assert (np.asarray(state.candidates.valid) >= mask).all()
+    # Observation.zeros (network initialisation) has one robot's shapes and dtypes.
+    robot = jax.tree.map(lambda x: (x.shape[1:], x.dtype), obs)
+    assert jax.tree.map(lambda x: (x.shape, x.dtype), Observation.zeros(P0)) == robot
 
 
 # ---------------------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from jaxmripp import config as cfgmod
 from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
+from jaxmripp.sim.observation import Observation
 from jaxmripp.parallel.local import host_devices_env, max_relative_difference, run_local
 from jaxmripp.parallel.mesh import data_parallel
 
@@ -94,7 +95,7 @@ def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
 
 def _random_observations(key, trainer, batch):
     """Observations with random features and masks (at least one feasible candidate)."""
-    example = trainmod.example_observation(trainer.env_params, trainer.env_dynamic)
+    example = Observation.zeros(trainer.env_params)
     keys = iter(jax.random.split(key, 8))
     draw = lambda x: jax.random.normal(next(keys), (*batch, *x.shape))
     mask = jax.random.bernoulli(next(keys), 0.6, (*batch, *example.mask.shape))

@@ -25,10 +25,10 @@ import numpy as np
 from flax import struct
 
 from jaxmripp import config as cfgmod
-from jaxmripp.sim import env as envmod
 from jaxmripp.learn import ppo
 from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
+from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.learn.policy import initial_memory
 from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
@@ -76,16 +76,11 @@ class Trainer:
 
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
-        params = self.network.init(jax.random.fold_in(key, 1 << 30),
-                                   initial_memory(self.cfg.policy),
-                                   example_observation(self.env_params, self.env_dynamic))
+        # One compiled program: run eagerly, the initialisers compile op by op (hundreds).
+        params = jax.jit(self.network.init)(jax.random.fold_in(key, 1 << 30),
+                                            initial_memory(self.cfg.policy),
+                                            Observation.zeros(self.env_params))
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32))
-
-
-def example_observation(params: EnvParams, dyn: DynamicParams):
-    """Zeros shaped like one robot's observation, without running (or compiling) a reset."""
-    shapes = jax.eval_shape(lambda d: envmod.reset(jax.random.PRNGKey(0), params, d)[0], dyn)
-    return jax.tree.map(lambda s: jnp.zeros(s.shape[1:], s.dtype), shapes)
 
 
 def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: DataParallel):

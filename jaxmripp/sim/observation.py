@@ -48,6 +48,15 @@ class Observation:
     robot_state: jax.Array  # (..., S) float32, layout ROBOT_STATE
     global_state: jax.Array  # (..., N*S + 2) float32, for a centralised critic
 
+    @classmethod
+    def zeros(cls, params: EnvParams) -> "Observation":
+        """One robot's observation, all zero: shapes for initialising a network without
+        tracing a reset."""
+        return cls(features=jnp.zeros((params.n_candidates, N_FEATURES), jnp.float32),
+                   mask=jnp.zeros((params.n_candidates,), bool),
+                   robot_state=jnp.zeros((N_ROBOT_STATE,), jnp.float32),
+                   global_state=jnp.zeros((global_state_size(params.n_robots),), jnp.float32))
+
 
 def observe(state: EnvState, params: EnvParams) -> Observation:
     """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
