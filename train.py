@@ -44,8 +44,10 @@ def main(argv=None) -> int:
     finished = int(state.update) >= cfg.train.updates
     if finished and not args.no_eval:
         pipeline.report(cfg, run_dir, log=say)
-    say(f"results: {run_dir}/ (metrics.jsonl, learning_curve.png, eval_table.md, "
-        "discovered_vs_budget.png, episode_policy.png, checkpoints/)")
+    written = [name for name in ("metrics.jsonl", "learning_curve.png", "eval_table.md",
+                                 "discovered_vs_budget.png", "episode_policy.png", "checkpoints")
+               if (run_dir / name).exists()]
+    say(f"results: {run_dir}/ ({', '.join(written)})")
     return 0
 
 
