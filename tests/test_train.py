@@ -158,6 +158,7 @@ def _final_params(cfg, run_dir):
     return state.params
 
 
+@pytest.mark.slow  # a compilation for 2 devices in a process of its own: make test's budget
 def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full_run,
                                                                         tmp_path):
     """Updates 2 and 3 on 2 devices, resumed from the 1-device run's first checkpoint."""
