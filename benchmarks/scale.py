@@ -97,7 +97,8 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
             "eval.layout=random", "eval.seed=2000", "eval.render=false", "eval.pairs=[]",
             *overrides]
     exchanges = {
-        "global": [*cell, "eval.radio_ranges=[.inf]", "eval.planners=[policy, coordinated, nbv_team]"],
+        "global": [*cell, "eval.radio_ranges=[.inf]",
+                   "eval.planners=[policy, coordinated, nbv_team]"],
         "single_hop": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]"],
         "relay": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
                   "radio.relay=true"],
