@@ -40,7 +40,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
 from jaxmripp.runtime import NumpyPolicy, OnboardPlanner  # noqa: E402
 from jaxmripp.runtime import weights as fmt  # noqa: E402
-from jaxmripp.demo import fly, pads  # noqa: E402  (imports jax only inside main)
+from jaxmripp.demo import fly  # noqa: E402  (imports jax only inside main)
+from jaxmripp.flight.team import pads  # noqa: E402
 from jaxmripp.runtime.mapping import HEADING_VECTORS  # noqa: E402
 
 N, BUDGET, MIN_DECISIONS, WARMUP_EPISODES = 3, 10.0, 600, 1

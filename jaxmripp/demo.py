@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp.flight.team import exchange, pads
 from jaxmripp.runtime import weights as fmt
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import OnboardPlanner
@@ -41,24 +42,6 @@ def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell
     solid = (g[None, None, :] < height[:, :, None]).reshape(-1)
     stop, hit, _ = fly_until(start, end, solid, size, shell_hi)
     return stop, hit
-
-
-def pads(start, count: int, spacing: float) -> np.ndarray:
-    """Take-off pads (`jaxmripp.spec.flight`): start + spacing (i mod m, 0, i div m),
-    m = ceil(sqrt(N))."""
-    side = math.ceil(math.sqrt(count))
-    i = np.arange(count)
-    offset = np.stack([i % side, np.zeros_like(i), i // side], axis=-1).astype(np.float32)
-    return (np.asarray(start, np.float32) + np.float32(spacing) * offset).astype(np.float32)
-
-
-def exchange(outbox: list, position: np.ndarray, radio_range: float, deliver) -> None:
-    """Delivers every robot's broadcast to the robots within radio range."""
-    gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
-    for i in range(len(outbox)):
-        for j, data in enumerate(outbox):
-            if j != i and gap[i, j] <= radio_range:
-                deliver(i, data)
 
 
 def main(argv: list[str] | None = None) -> float:

@@ -56,7 +56,7 @@ from typing import Any
 import numpy as np
 
 from jaxmripp.runtime import candidates as cands
-from jaxmripp.runtime import flight, observation, safety, validation
+from jaxmripp.runtime import depth, flight, observation, safety, validation
 from jaxmripp.runtime.errors import PlannerStateError
 from jaxmripp.runtime.exchange import RadioExchange
 from jaxmripp.runtime.feeding import FeedSchedule
@@ -66,7 +66,7 @@ from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.sharing import MapSharing
 from jaxmripp.runtime.weights import RuntimeSpec
 from jaxmripp.spec.flight import SCAN_TURNS
-from jaxmripp.spec.grid import HEADING_ANGLES
+from jaxmripp.spec.grid import FREE, HEADING_ANGLES, OCCUPIED
 from jaxmripp.spec.layout import FEATURES
 
 F32 = np.float32
@@ -83,7 +83,7 @@ class Decision:
     heading: int  # heading index of `pose`
     index: int  # chosen candidate, -1 when hovering
     hover: bool
-    reason: str  # "policy" / "greedy", or why the robot hovers
+    reason: str  # the mode that chose ("policy", "greedy", "random"), or why it hovers
     mode: str
     scores: np.ndarray  # (L,) policy logits (infeasible floored) or greedy scores
     mask: np.ndarray  # (L,) bool candidates the rule could pick (offered and safe)
@@ -112,8 +112,8 @@ class OnboardPlanner(RadioExchange):
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
-        mode: "policy" (needs `policy`) or "greedy" (score = utility mean + kappa * std -
-        lam * communication mean); max_steps: the episode length the policy's step feature
+        mode: "policy" (needs `policy`), "greedy" (score = utility mean + kappa * std -
+        lam * communication mean) or "random" (uniform among the safe candidates); max_steps: the episode length the policy's step feature
         is normalised by (default: the export's); seed: candidate sampling (default: id).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
@@ -213,6 +213,17 @@ class OnboardPlanner(RadioExchange):
         self._pending, self.intents = None, {}
         self._map_sent = self._decided = False
         self.contacts = {}  # positions heard are good for this round only
+
+    def sense_depth(self, position, heading, images, camera, frame, n_seen: int,
+                    blocked: bool = False) -> None:
+        """`sense` from depth images instead of voxel lists (`jaxmripp.runtime.depth`):
+        images [(depth (H, W) metres, camera position (3,) metres, rotation (3, 3) camera
+        -> world), ...] taken at this pose (all four headings for the take-off scan);
+        camera: `DepthCamera`; frame: the `GridFrame` placing the unit cube in metres.
+        Voxels this map holds OCCUPIED stay so (a static world)."""
+        flat, codes = depth.observe_many(images, camera, frame, self.spec.size)
+        keep = ~((codes == FREE) & (self.map.codes[flat] == OCCUPIED))
+        self.sense(position, heading, flat[keep], codes[keep], n_seen, blocked=blocked)
 
     # -----------------------------------------------------------------------------------
     # Decision
@@ -342,6 +353,8 @@ class OnboardPlanner(RadioExchange):
         if mode == "policy":
             self.memory, scores, _ = self.policy(self.memory, features, mask, robot_state)
             return scores
+        if mode == "random":
+            return self.rng.random(len(mask)).astype(F32)
         f = features
         scores = f[:, COL["utility_mean"]] + self.kappa * f[:, COL["utility_std"]] \
             - self.lam * f[:, COL["comm_mean"]]
