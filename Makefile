@@ -3,14 +3,14 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install train test bench results ablations clean
+.PHONY: install train test flight bench results ablations clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV) || python3 -m venv $(VENV)
 
 $(STAMP): $(BIN)/python pyproject.toml
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e ".[test]"
+	$(BIN)/python -m pip install --quiet -e ".[test,flight]"
 	touch $(STAMP)
 
 install: $(STAMP)
@@ -20,6 +20,11 @@ train: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile
+
+# One mission of simulated quadrotors flown by the shipped policy (about a minute):
+# runs/flight/result.json, paths.png (3D) and flight.gif.
+flight: $(STAMP)
+	$(BIN)/python -m jaxmripp.flight --export pretrained/default --out runs/flight
 
 bench: $(STAMP)
 	for b in sensing gp env runtime safety; do $(BIN)/python benchmarks/$$b.py || exit 1; done

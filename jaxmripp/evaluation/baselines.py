@@ -18,13 +18,12 @@ import jax.numpy as jnp
 
 from jaxmripp.sim import comms, geometry, gp, sensing, view
 from jaxmripp.sim.episode import Planner
+from jaxmripp.spec import layout
 from jaxmripp.sim.observation import FEATURES, Observation
 
 UTILITY_MEAN = FEATURES.index("utility_mean")
 UTILITY_STD = FEATURES.index("utility_std")
 COMM_MEAN = FEATURES.index("comm_mean")
-UNKNOWN_PER_COST = FEATURES.index("view_unknown_per_cost")
-FACADE_PER_COST = FEATURES.index("view_facade_per_cost")
 
 
 def _no_memory(n_robots: int) -> jax.Array:
@@ -165,9 +164,8 @@ def oracle_planner(params, name: str = "oracle") -> Planner:
 
 
 def nbv_scores(features: jax.Array, facade_weight: float) -> jax.Array:
-    """Next-best-view score: view gain per unit of flight cost (`jaxmripp.spec.view`),
-    unknown voxels in view plus `facade_weight` times the unknown facade voxels."""
-    return features[..., UNKNOWN_PER_COST] + facade_weight * features[..., FACADE_PER_COST]
+    """Next-best-view score (`jaxmripp.spec.layout.nbv_score`, shared with the runtime)."""
+    return layout.nbv_score(features, facade_weight)
 
 
 def nbv_planner(facade_weight: float = 1.0, name: str = "nbv") -> Planner:

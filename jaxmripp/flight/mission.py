@@ -30,9 +30,9 @@ from jaxmripp.flight.team import exchange, pads
 from jaxmripp.runtime.depth import DepthCamera
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.runtime.weights import ExportedPolicy, RuntimeSpec
-from jaxmripp.spec.grid import HEADING_ANGLES, N_HEADINGS
+from jaxmripp.spec.grid import FREE, HEADING_ANGLES, N_HEADINGS
 
-PLANNERS = ("policy", "greedy", "random")
+PLANNERS = ("policy", "nbv", "greedy", "random")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,6 +56,7 @@ class MissionResult:
     crashes: list[Crash]
     rounds: int
     late_arrivals: int  # flights that had not arrived when their round's time ran out
+    false_free: int  # voxels inside a building that some drone's map holds FREE
     sim_seconds: float
     wall_seconds: float
     decision_ms: list[float]  # per robot decision (decide + resolve)
@@ -83,7 +84,7 @@ def camera_for(spec: RuntimeSpec, frame: CityFrame, settings: MissionSettings
 def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, planner: str,
                 settings: MissionSettings = MissionSettings(), seed: int = 0,
                 pad_spacing: float = 0.06, progress=None) -> MissionResult:
-    """Flies one mission with `planner` ("policy", "greedy" or "random") on every drone.
+    """Flies one mission with `planner` (one of PLANNERS: a runtime mode) on every drone.
     progress(round, result_so_far_pct) is called after every round when given."""
     if planner not in PLANNERS:
         raise ValueError(f"planner: got {planner!r}; allowed: {', '.join(PLANNERS)}")
@@ -137,11 +138,14 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
             late += not on_time
     finally:
         sim_seconds = scene.time
+        solid = (np.arange(city.size)[None, None, :] < city.height[:, :, None]).reshape(-1)
         crashes = list(scene.crashes)
         scene.close()
     return MissionResult(
         planner=planner, windows=city.n_windows, found=np.isfinite(found_time),
-        crashes=crashes, rounds=step, late_arrivals=late, sim_seconds=sim_seconds,
+        crashes=crashes, rounds=step, late_arrivals=late,
+        false_free=sum(int(np.sum((p.map.codes == FREE) & solid)) for p in planners),
+        sim_seconds=sim_seconds,
         wall_seconds=time.perf_counter() - wall_start, decision_ms=decision_ms,
         sense_ms=sense_ms, max_speed=max_speed, track_error=track_error,
         path_time=np.asarray(path_time), path=np.asarray(path), found_time=found_time,

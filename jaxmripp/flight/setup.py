@@ -46,6 +46,7 @@ def figures(result) -> dict:
         "crashes": len(result.crashes),
         "crash_list": [dataclasses.asdict(c) for c in result.crashes[:20]],
         "rounds": result.rounds, "late_arrivals": result.late_arrivals,
+        "false_free_voxels": result.false_free,
         "sim_seconds": round(result.sim_seconds, 2),
         "wall_seconds": round(result.wall_seconds, 2),
         "sim_realtime_factor": round(result.sim_seconds / result.wall_seconds, 2),

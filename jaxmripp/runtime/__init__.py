@@ -2,7 +2,7 @@
 
     from jaxmripp.runtime import OnboardPlanner
     planner = OnboardPlanner.load("runs/default/export", robot_id=0, budget=10 / 3)
-    planner.sense(position, heading, voxels, values, n_seen)   # every round
+    planner.sense(position, heading, voxels, values, n_seen)   # every round (or sense_depth)
     radio.send(planner.message()); [planner.receive(m) for m in radio.inbox()]
     radio.send(planner.map_message()); [planner.receive_map(m) for m in radio.inbox()]
     planner.decide()                                            # the chosen pose
@@ -14,7 +14,8 @@ The map round (the `map_message` line) runs with the export's `radio.share_maps`
 for the radio protocol. The planner's parts: `validation` (inputs), `exchange` (its
 broadcasts and receptions), `feeding` (GP feeding, rule in `jaxmripp.spec.feeding`),
 `candidates` (sampling), `observation` (policy inputs, rule in `jaxmripp.spec.layout`),
-`view` (the view gain, `jaxmripp.spec.view`), `sharing` (map deltas,
+`view` (the view gain, `jaxmripp.spec.view`), `depth` (depth images -> map updates, for
+`sense_depth`), `sharing` (map deltas,
 `jaxmripp.spec.sharing`), `safety` (the filter), `flight` (closest approach and the hold
 rule, `jaxmripp.spec.flight`), `policy` (the network), `gp` and `mapping` (the map, its
 building tops and the traversal rule of `jaxmripp.spec.grid`).
@@ -23,6 +24,7 @@ runtime modules (tests/test_runtime_numpy_only.py checks it).
 """
 
 from jaxmripp.runtime.candidates import Candidates
+from jaxmripp.runtime.depth import DepthCamera, GridFrame
 from jaxmripp.runtime.errors import (CorruptWeightsError, InvalidPoseError, MessageError,
                                      PlannerStateError, ProtocolVersionError, RuntimeInputError,
                                      WeightsFormatError)
@@ -34,7 +36,7 @@ from jaxmripp.runtime.weights import (FEATURES, FORMAT_VERSION, ROBOT_STATE, Exp
                                       RuntimeSpec, load)
 
 __all__ = [
-    "Candidates", "CorruptWeightsError", "Decision", "ExportedPolicy", "FEATURES",
+    "Candidates", "CorruptWeightsError", "Decision", "DepthCamera", "GridFrame", "ExportedPolicy", "FEATURES",
     "FORMAT_VERSION", "InvalidPoseError", "MapDelta", "MapMessage", "Message", "MessageError",
     "NumpyPolicy", "OnboardPlanner", "PROTOCOL_VERSION", "PlannerStateError",
     "ProtocolVersionError", "ROBOT_STATE", "RuntimeInputError", "RuntimeSpec",

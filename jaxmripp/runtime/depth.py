@@ -104,7 +104,7 @@ def _checked(depth, camera: DepthCamera, position, rotation, what: str):
     if depth.shape != (camera.height, camera.width):
         raise InvalidPoseError(f"{what}: depth image of shape {depth.shape}; the camera's is "
                                f"{(camera.height, camera.width)}")
-    bad = np.isnan(depth) | (depth < 0) | (depth == -np.inf)
+    bad = np.isnan(depth) | (depth < 0)
     if bad.any():
         v, u = np.argwhere(bad)[0]
         raise InvalidPoseError(f"{what}: depth must be >= 0 or +inf (no return); pixel "

@@ -67,6 +67,7 @@ from jaxmripp.runtime.sharing import MapSharing
 from jaxmripp.runtime.weights import RuntimeSpec
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, OCCUPIED
+from jaxmripp.spec import layout
 from jaxmripp.spec.layout import FEATURES
 
 F32 = np.float32
@@ -83,7 +84,7 @@ class Decision:
     heading: int  # heading index of `pose`
     index: int  # chosen candidate, -1 when hovering
     hover: bool
-    reason: str  # the mode that chose ("policy", "greedy", "random"), or why it hovers
+    reason: str  # the mode that chose (one of MODES), or why it hovers
     mode: str
     scores: np.ndarray  # (L,) policy logits (infeasible floored) or greedy scores
     mask: np.ndarray  # (L,) bool candidates the rule could pick (offered and safe)
@@ -107,13 +108,15 @@ class OnboardPlanner(RadioExchange):
         mode: str | None = None,
         kappa: float = 1.0,
         lam: float = 0.0,
+        facade_weight: float = 0.0,
         max_steps: int | None = None,
         seed: int | None = None,
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
         mode: "policy" (needs `policy`), "greedy" (score = utility mean + kappa * std -
-        lam * communication mean) or "random" (uniform among the safe candidates); max_steps: the episode length the policy's step feature
+        lam * communication mean), "nbv" (next-best view: `jaxmripp.spec.layout.nbv_score`
+        with `facade_weight`) or "random" (uniform among the safe candidates); max_steps: the episode length the policy's step feature
         is normalised by (default: the export's); seed: candidate sampling (default: id).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
@@ -127,6 +130,7 @@ class OnboardPlanner(RadioExchange):
         self.policy = policy
         self.mode = mode
         self.kappa, self.lam = float(kappa), float(lam)
+        self.facade_weight = float(facade_weight)
         self.max_steps = spec.max_steps if max_steps is None else int(max_steps)
         self.rng = np.random.default_rng(self.id if seed is None else seed)
 
@@ -355,6 +359,8 @@ class OnboardPlanner(RadioExchange):
             return scores
         if mode == "random":
             return self.rng.random(len(mask)).astype(F32)
+        if mode == "nbv":
+            return layout.nbv_score(features, self.facade_weight).astype(F32)
         f = features
         scores = f[:, COL["utility_mean"]] + self.kappa * f[:, COL["utility_std"]] \
             - self.lam * f[:, COL["comm_mean"]]

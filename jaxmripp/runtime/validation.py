@@ -18,7 +18,7 @@ from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.grid import N_HEADINGS, OCCUPIED
 
 F32 = np.float32
-MODES = ("policy", "greedy", "random")
+MODES = ("policy", "greedy", "nbv", "random")
 
 
 def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget: float,
@@ -41,10 +41,10 @@ def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget:
 
 
 def decide_mode(mode: str, has_policy: bool) -> str:
-    """The mode of one `decide` call: greedy and random always work, policy needs
-    weights."""
+    """The mode of one `decide` call: the rules work without weights, policy needs
+    them."""
     if mode not in MODES or (mode == "policy" and not has_policy):
-        raise ValueError(f"mode: got {mode!r}; allowed: greedy, random" +
+        raise ValueError(f"mode: got {mode!r}; allowed: greedy, nbv, random" +
                          (", policy" if has_policy else ""))
     return mode
 

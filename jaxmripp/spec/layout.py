@@ -71,6 +71,15 @@ def view_prior(features, mask, xp=np):
     return gain / xp.maximum(xp.max(gain), xp.float32(VIEW_PRIOR_FLOOR))
 
 
+def nbv_score(features, facade_weight: float):
+    """(..., L) the next-best-view score of candidates (..., L, F): view gain per unit of
+    flight cost, unknown voxels in view plus `facade_weight` x unknown facade voxels
+    (`jaxmripp.spec.view`). Plain indexing and arithmetic, so NumPy and JAX arrays share
+    it (`jaxmripp.evaluation.baselines.nbv_planner`, the runtime's "nbv" mode)."""
+    return features[..., FEATURES.index("view_unknown_per_cost")] \
+        + facade_weight * features[..., FEATURES.index("view_facade_per_cost")]
+
+
 def input_keep(comm: bool = True, view: bool = True, intent: bool = True) -> np.ndarray:
     """(F,) float32 1/0 multipliers of the FEATURES columns: 0 for an ablated group."""
     dropped = set()

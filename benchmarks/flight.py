@@ -1,0 +1,86 @@
+"""Physics in the loop: the exported policy against the random planner (and next-best
+view) on simulated quadrotors, over W cities (`jaxmripp.flight`).
+
+    python benchmarks/flight.py [--export pretrained/default] [--worlds 5]
+        [--planners policy,random,nbv] [--budget 7.0]
+
+Every planner flies the same cities (seeds first_seed .. first_seed + W - 1, random
+layout, 60 m x 60 m x 30 m, N from the export). Prints JSON lines: flight.<planner>_pct
+(mean, with std and 95% half-width), flight.policy_vs_random, flight.crashes (all
+planners, all missions), flight.decision_ms (median per robot decision, policy),
+flight.sense_ms (median depth image -> map update), flight.sim_realtime_factor
+(simulated seconds per wall second, all missions), flight.max_speed,
+flight.track_error_m (farthest from a line of flight), flight.late_arrivals and
+flight.false_free_voxels (building voxels some map held FREE; 0 by the depth rule).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from pathlib import Path
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import numpy as np  # noqa: E402
+
+from common import emit  # noqa: E402
+
+
+def main(argv=None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--export", type=Path, default=Path("pretrained/default"))
+    parser.add_argument("--worlds", type=int, default=5)
+    parser.add_argument("--first-seed", type=int, default=100)
+    parser.add_argument("--planners", default="policy,random,nbv")
+    parser.add_argument("--budget", type=float, default=7.0)
+    args = parser.parse_args(argv)
+    planners = args.planners.split(",")
+    if args.worlds < 1 or "policy" not in planners or "random" not in planners:
+        parser.error("--worlds must be >= 1 and --planners must include policy and random")
+
+    from tqdm import tqdm
+
+    from jaxmripp.flight import setup
+    from jaxmripp.flight.mission import MissionSettings, fly_mission
+
+    team = setup.load_team(args.export)
+    settings = MissionSettings(budget=args.budget)
+    results = {name: [] for name in planners}
+    bar = tqdm(total=args.worlds * len(planners), desc="missions", file=sys.stderr)
+    for seed in range(args.first_seed, args.first_seed + args.worlds):
+        city = setup.city(team, seed, settings.frame)
+        for name in planners:
+            results[name].append(fly_mission(city, team.spec, team.exported, name, settings,
+                                             seed=seed, pad_spacing=team.pad_spacing))
+            bar.set_postfix({name: f"{results[name][-1].pct:.1f}%"})
+            bar.update()
+    bar.close()
+    every = [r for runs in results.values() for r in runs]
+    for name, runs in results.items():
+        pct = np.array([r.pct for r in runs])
+        std = float(pct.std(ddof=1)) if len(pct) > 1 else 0.0
+        emit(f"flight.{name}_pct", pct.mean(), "%", std=round(std, 3),
+             ci95=round(1.96 * std / math.sqrt(len(pct)), 3), worlds=len(pct))
+    policy = np.mean([r.pct for r in results["policy"]])
+    random = np.mean([r.pct for r in results["random"]])
+    emit("flight.policy_vs_random", policy / random, "ratio")
+    emit("flight.crashes", sum(len(r.crashes) for r in every), "count",
+         missions=len(every))
+    emit("flight.decision_ms", np.median([t for r in results["policy"] for t in r.decision_ms]),
+         "ms")
+    emit("flight.sense_ms", np.median([t for r in every for t in r.sense_ms]), "ms")
+    emit("flight.sim_realtime_factor",
+         sum(r.sim_seconds for r in every) / sum(r.wall_seconds for r in every), "x")
+    emit("flight.max_speed", max(r.max_speed for r in every), "m/s")
+    emit("flight.track_error_m", max(r.track_error for r in every), "m")
+    emit("flight.late_arrivals", sum(r.late_arrivals for r in every), "count")
+    emit("flight.false_free_voxels", sum(r.false_free for r in every), "count")
+
+
+if __name__ == "__main__":
+    main()
