@@ -45,15 +45,16 @@ def main(argv=None) -> None:
 
     from tqdm import tqdm
 
-    from jaxmripp.flight import setup
+    from jaxmripp.flight import city as citymod
     from jaxmripp.flight.mission import MissionSettings, fly_mission
+    from jaxmripp.flight.team import load_team
 
-    team = setup.load_team(args.export)
+    team = load_team(args.export)
     settings = MissionSettings(budget=args.budget)
     results = {name: [] for name in planners}
     bar = tqdm(total=args.worlds * len(planners), desc="missions", file=sys.stderr)
     for seed in range(args.first_seed, args.first_seed + args.worlds):
-        city = setup.city(team, seed, settings.frame)
+        city = citymod.generate(seed, team.world, settings.frame)
         for name in planners:
             results[name].append(fly_mission(city, team.spec, team.exported, name, settings,
                                              seed=seed, pad_spacing=team.pad_spacing))

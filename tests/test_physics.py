@@ -12,10 +12,11 @@ import pytest
 
 pytest.importorskip("pybullet", reason="the flight extra: pip install -e .[flight]")
 
-from jaxmripp.flight import city as citymod, setup  # noqa: E402
+from jaxmripp.flight import city as citymod  # noqa: E402
 from jaxmripp.flight.city import CityFrame  # noqa: E402
 from jaxmripp.flight.mission import MissionSettings, fly_mission  # noqa: E402
 from jaxmripp.flight.scene import Scene  # noqa: E402
+from jaxmripp.flight.team import load_team  # noqa: E402
 from jaxmripp.runtime.depth import DepthCamera  # noqa: E402
 from test_runtime_depth import LOOK_X, box_depth  # noqa: E402
 
@@ -60,8 +61,8 @@ def test_city_refuses_hidden_windows_and_walls_outside_the_core():
 
 
 def test_the_same_seed_gives_the_voxel_worlds_city():
-    team = setup.load_team(REPO / "pretrained/default")
-    city = setup.city(team, 7, CityFrame())
+    team = load_team(REPO / "pretrained/default")
+    city = citymod.generate(7, team.world, CityFrame())
     import jax
 
     from jaxmripp.sim import world as worldmod
@@ -160,9 +161,9 @@ def test_contacts_are_crashes():
 
 
 def test_a_short_mission_of_the_shipped_policy_is_safe():
-    team = setup.load_team(REPO / "pretrained/default")
+    team = load_team(REPO / "pretrained/default")
     settings = MissionSettings(budget=1.5)
-    city = setup.city(team, 3, settings.frame)
+    city = citymod.generate(3, team.world, settings.frame)
     result = fly_mission(city, team.spec, team.exported, "policy", settings, seed=3,
                          pad_spacing=team.pad_spacing)
     assert result.crashes == [] and result.false_free == 0 and result.late_arrivals == 0

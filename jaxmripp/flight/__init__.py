@@ -7,6 +7,6 @@ planner), installed with the `flight` extra. Modules: `city` (the voxel world in
 same seed, same city), `quadrotor` (a rigid-body drone and its position controller),
 `scene` (the pybullet world: depth camera by ray casting, window sightings, contacts),
 `mission` (one mission: planners, radio, flights), `pictures` (3D plot and GIF) and
-`team` (take-off pads and radio delivery, NumPy). Only `scene`, `quadrotor` and the
+`team` (an export with its world, take-off pads, radio delivery). Only `scene`, `quadrotor` and the
 missions need pybullet; it is imported when a scene is built.
 """

@@ -30,16 +30,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-pictures", action="store_true")
     args = parser.parse_args(argv)
 
-    from jaxmripp.flight import setup
+    from jaxmripp.flight import city as citymod
     from jaxmripp.flight.mission import MissionSettings, fly_mission
+    from jaxmripp.flight.team import load_team
 
     try:
-        team = setup.load_team(args.export)
+        team = load_team(args.export)
     except (OSError, ValueError) as error:
         print(f"python -m jaxmripp.flight: {error}", file=sys.stderr)
         return 2
     settings = MissionSettings(budget=args.budget)
-    city = setup.city(team, args.seed, settings.frame)
+    city = citymod.generate(args.seed, team.world, settings.frame)
     print(f"{team.spec.team_size} drones, {args.planner} planners, {city.n_windows} windows, "
           f"{len(city.box_centre)} buildings, budget {args.budget:g}, seed {args.seed}")
     result = fly_mission(city, team.spec, team.exported, args.planner, settings,
@@ -47,8 +48,7 @@ def main(argv: list[str] | None = None) -> int:
                          progress=lambda k, pct: print(f"round {k:3d}  found {pct:5.1f}%",
                                                        flush=True))
     args.out.mkdir(parents=True, exist_ok=True)
-    figures = setup.figures(result)
-    (args.out / "result.json").write_text(json.dumps(figures, indent=2) + "\n")
+    (args.out / "result.json").write_text(json.dumps(result.figures(), indent=2) + "\n")
     written = ["result.json"]
     if not args.no_pictures:
         from jaxmripp.flight import pictures

@@ -72,6 +72,21 @@ class MissionResult:
     def pct(self) -> float:
         return 100.0 * float(self.found.mean()) if self.windows else 0.0
 
+    def figures(self) -> dict:
+        """The mission's figures, JSON-ready."""
+        return {
+            "planner": self.planner, "pct": round(self.pct, 3), "windows": self.windows,
+            "crashes": len(self.crashes),
+            "crash_list": [dataclasses.asdict(c) for c in self.crashes[:20]],
+            "rounds": self.rounds, "late_arrivals": self.late_arrivals,
+            "false_free_voxels": self.false_free, "sim_seconds": round(self.sim_seconds, 2),
+            "wall_seconds": round(self.wall_seconds, 2),
+            "sim_realtime_factor": round(self.sim_seconds / self.wall_seconds, 2),
+            "decision_ms_median": round(float(np.median(self.decision_ms)), 3),
+            "sense_ms_median": round(float(np.median(self.sense_ms)), 3),
+            "max_speed": round(self.max_speed, 3), "track_error_m": round(self.track_error, 4),
+        }
+
 
 def camera_for(spec: RuntimeSpec, frame: CityFrame, settings: MissionSettings
                ) -> DepthCamera:

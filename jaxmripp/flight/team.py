@@ -1,11 +1,40 @@
-"""What a team flown by the onboard runtime needs around the planners, in NumPy: its
-take-off pads and a radio that delivers each broadcast to the robots within range."""
+"""What a team flown by the onboard runtime needs around its planners: the exported
+policy with the world it was trained for (`load_team`), the take-off pads and a radio that
+delivers each broadcast to the robots within range (NumPy)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
+
+from jaxmripp.runtime import weights as fmt
+
+
+@dataclasses.dataclass(frozen=True)
+class Team:
+    spec: fmt.RuntimeSpec
+    exported: fmt.ExportedPolicy
+    world: object  # jaxmripp.config.WorldConfig of the cities to fly in
+    pad_spacing: float
+
+
+def load_team(export: Path) -> Team:
+    """The exported policy in `export` and its world: config.yaml beside policy.json if
+    there is one (else the default config's world) at the export's size, random layout
+    (the test layout), the largest window count."""
+    from jaxmripp import config as cfgmod
+
+    exported = fmt.load(export)
+    directory = Path(export) if Path(export).is_dir() else Path(export).parent
+    cfg = cfgmod.load(directory / "config.yaml" if (directory / "config.yaml").exists()
+                      else None)
+    world = dataclasses.replace(cfg.world, size=exported.spec.size, layout="random",
+                                targets=(cfg.world.targets[1],) * 2)
+    spacing = exported.header["config"]["robots"].get("pad_spacing", cfg.robots.pad_spacing)
+    return Team(exported.spec, exported, world, float(spacing))
 
 
 def pads(start, count: int, spacing: float) -> np.ndarray:
