@@ -17,13 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp.flight.mission import PLANNERS
+
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m jaxmripp.flight", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=Path("pretrained/default"),
                         help="exported policy (directory with policy.json)")
-    parser.add_argument("--planner", default="policy", choices=("policy", "nbv", "greedy", "random"))
+    parser.add_argument("--planner", default="policy", choices=PLANNERS)
     parser.add_argument("--seed", type=int, default=0, help="city and planner seed")
     parser.add_argument("--budget", type=float, default=7.0, help="team budget")
     parser.add_argument("--out", type=Path, default=Path("runs/flight"))

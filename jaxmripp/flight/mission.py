@@ -112,7 +112,8 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
     frame, grid = settings.frame, settings.frame.grid
     camera = camera_for(spec, frame, settings)
     per_robot = settings.budget / n
-    rounds = settings.max_rounds or max(spec.max_steps, int(math.ceil(per_robot / spec.shell[0])) + 4)
+    rounds = settings.max_rounds or max(spec.max_steps,
+                                        int(math.ceil(per_robot / spec.shell[0])) + 4)
     planners = [OnboardPlanner(spec, i, per_robot, team_size=n,
                                policy=policy.policy if policy is not None else None,
                                mode=planner, max_steps=rounds, seed=seed * 1000 + i)

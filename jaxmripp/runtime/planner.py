@@ -116,8 +116,9 @@ class OnboardPlanner(RadioExchange):
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
         mode: "policy" (needs `policy`), "greedy" (score = utility mean + kappa * std -
         lam * communication mean), "nbv" (next-best view: `jaxmripp.spec.layout.nbv_score`
-        with `facade_weight`) or "random" (uniform among the safe candidates); max_steps: the episode length the policy's step feature
-        is normalised by (default: the export's); seed: candidate sampling (default: id).
+        with `facade_weight`) or "random" (uniform among the safe candidates); max_steps:
+        the episode length the policy's step feature is normalised by (default: the
+        export's); seed: candidate sampling (default: id).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
