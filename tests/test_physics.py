@@ -4,6 +4,7 @@ and one short mission of the shipped policy."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -161,15 +162,19 @@ def test_contacts_are_crashes():
 
 
 def test_a_short_mission_of_the_shipped_policy_is_safe():
+    """With the take-off scan (the drones turn through all four headings on their pads
+    before the first decision), which the shipped export leaves off."""
     team = load_team(REPO / "pretrained/default")
-    settings = MissionSettings(budget=1.5)
+    spec = dataclasses.replace(team.spec, takeoff_scan=True)
+    settings = MissionSettings(budget=2.0)
     city = citymod.generate(3, team.world, settings.frame)
-    result = fly_mission(city, team.spec, team.exported, "policy", settings, seed=3,
+    result = fly_mission(city, spec, team.exported, "policy", settings, seed=3,
                          pad_spacing=team.pad_spacing)
     assert result.crashes == [] and result.false_free == 0 and result.late_arrivals == 0
     assert result.rounds >= 2 and 0 < result.pct < 100
     assert result.max_speed <= 1.0 and result.track_error < 0.1
-    flown = sum(len(w) - 1 for w in result.waypoints)
-    assert flown >= 2
-    # The windows counted are ones some drone saw: each has a found time inside the flight.
+    assert sum(len(w) - 1 for w in result.waypoints) >= 2
+    # Windows are counted when first seen: the scan sees some before any flight.
+    first_flight = result.path_time[1]
+    assert 0 < np.sum(result.found_time < first_flight) < np.sum(result.found)
     assert np.all(result.found_time[result.found] <= result.sim_seconds)

@@ -130,8 +130,9 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
     try:
         for step in range(rounds + 1):
             scan = step == 0 and spec.takeoff_scan
-            turns = [(int(heading[i]) + k) % N_HEADINGS for k in (1, 2, 3, 0)] if scan else None
             for i, robot in enumerate(planners):
+                turns = [(int(heading[i]) + k) % N_HEADINGS for k in (1, 2, 3, 0)] \
+                    if scan else None
                 images, seen, seen_here = _look(scene, i, camera, turns)
                 found_time[seen] = np.minimum(found_time[seen], scene.time)
                 start = time.perf_counter()
