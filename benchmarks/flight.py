@@ -2,10 +2,10 @@
 view) on simulated quadrotors, over W cities (`jaxmripp.flight`).
 
     python benchmarks/flight.py [--export pretrained/default] [--worlds 5]
-        [--planners policy,random,nbv] [--budget 7.0]
+        [--planners policy,random,nbv] [--budget 7.0] [--footprints 2,5]
 
 Every planner flies the same cities (seeds first_seed .. first_seed + W - 1, random
-layout, 60 m x 60 m x 30 m, N from the export). Prints JSON lines: flight.<planner>_pct
+layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export). Prints JSON lines: flight.<planner>_pct
 (mean, with std and 95% half-width), flight.policy_vs_random, flight.crashes (all
 planners, all missions), flight.decision_ms (median per robot decision, policy),
 flight.sense_ms (median depth image -> map update), flight.sim_realtime_factor
@@ -28,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import numpy as np  # noqa: E402
 
 from common import emit  # noqa: E402
+from jaxmripp.flight.team import DEFAULT_FOOTPRINTS  # noqa: E402
 
 
 def main(argv=None) -> None:
@@ -38,6 +39,8 @@ def main(argv=None) -> None:
     parser.add_argument("--first-seed", type=int, default=100)
     parser.add_argument("--planners", default="policy,random,nbv")
     parser.add_argument("--budget", type=float, default=7.0)
+    parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
+                        help="building sides drawn from LO..HI voxels")
     args = parser.parse_args(argv)
     planners = args.planners.split(",")
     if args.worlds < 1 or "policy" not in planners or "random" not in planners:
@@ -47,9 +50,12 @@ def main(argv=None) -> None:
 
     from jaxmripp.flight import city as citymod
     from jaxmripp.flight.mission import MissionSettings, fly_mission
-    from jaxmripp.flight.team import load_team
+    from jaxmripp.flight.team import load_team, parse_footprints
 
-    team = load_team(args.export)
+    try:
+        team = load_team(args.export, parse_footprints(args.footprints))
+    except ValueError as error:
+        parser.error(str(error))
     settings = MissionSettings(budget=args.budget)
     results = {name: [] for name in planners}
     bar = tqdm(total=args.worlds * len(planners), desc="missions", file=sys.stderr)

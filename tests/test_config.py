@@ -58,6 +58,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.buildings=400", "buildings fit"),
         ("ppo.algo=sac", "one of ippo, mappo"),
         ("gp.noise=0", "gp.noise: got 0.0"),
+        ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),
     ],
 )
 def test_bad_values_give_one_clear_line(override, needle):

@@ -143,6 +143,36 @@ def test_occupied_and_truth_agree():
     assert not truth[0, 0, 0] == geometry.OCCUPIED  # the robots' start is free
 
 
+@pytest.mark.parametrize("placement", ["facade", "footprint"])
+def test_varied_footprints_are_rectangles_in_range_with_windows_on_them(placement):
+    cfg, w = city(6, layout="random", footprint=5, footprint_min=2, target_placement=placement)
+    boxes = footprints(w.height)
+    assert len(boxes) == cfg.n_buildings
+    sides = np.array([hi - lo + 1 for lo, hi in boxes])
+    assert sides.min() >= 2 and sides.max() <= 5 and len(np.unique(sides, axis=0)) > 4
+    for lo, hi in boxes:  # one height per rectangle: nothing missing, nothing merged
+        block = w.height[lo[0]:hi[0] + 1, lo[1]:hi[1] + 1]
+        assert (block > 0).all() and np.ptp(block) == 0
+    check_windows(cfg, w)
+    v = w.target_voxel[w.target_valid]
+    labels, _ = ndimage.label(w.height > 0, structure=np.ones((3, 3)))
+    assert len(np.unique(labels[v[:, 0], v[:, 1]])) > cfg.n_buildings // 2
+    if placement == "footprint":  # interior columns of the larger footprints hold some
+        padded = np.pad(w.height, 1)
+        x, y, z = v[:, 0] + 1, v[:, 1] + 1, v[:, 2]
+        walled = np.stack([padded[x - 1, y], padded[x + 1, y], padded[x, y - 1],
+                           padded[x, y + 1]]) > z
+        assert walled.all(axis=0).any()
+
+
+def test_square_footprints_ignore_the_varied_draw():
+    """footprint_min = footprint draws sides that are all the square's: the same city as
+    footprint_min = 0 in its buildings, by its own key."""
+    _, square = city(9, layout="random")
+    _, drawn = city(9, layout="random", footprint_min=3)
+    np.testing.assert_array_equal(square.height, drawn.height)
+
+
 def test_impossible_configs_raise():
     with pytest.raises(ValueError, match="windows requested"):
         world.generate(jax.random.PRNGKey(0), WorldConfig(targets=(5000, 5000)))

@@ -56,6 +56,7 @@ RULES: dict[str, tuple] = {
     "world.layout": _choice("grid", "random"),
     "world.buildings": _range(1, 10_000),
     "world.footprint": _range(1, 16),
+    "world.footprint_min": _range(0, 16),
     "world.height_range": _pair(_range(0, 1, lo_open=True)),
     "world.targets": _pair(_range(1, 100_000)),
     "world.target_placement": _choice("facade", "footprint"),
@@ -159,6 +160,10 @@ def _world_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if w.n_buildings > lots * lots:
         problems.append(("world.buildings", w.buildings,
                          f"at most {lots * lots} buildings fit a {w.size}^3 world"))
+    if w.footprint_min > w.footprint:
+        problems.append(("world.footprint_min", w.footprint_min,
+                         f"0 (every side world.footprint) or 1 .. world.footprint = "
+                         f"{w.footprint}"))
     if w.target_placement == "facade" and w.clearance < 1:
         problems.append(("world.clearance", w.clearance,
                          "at least 1 with facade windows (every window must face free air)"))

@@ -17,7 +17,8 @@ class WorldConfig:
     size: int = 50  # G: voxels per side of the unit cube
     layout: str = "grid"  # grid (training) | random (test)
     buildings: int = 25  # at G = 50; scaled by (G / 50)^2 to keep the density
-    footprint: int = 3  # building footprint side, voxels
+    footprint: int = 3  # building footprint side, voxels (the largest, with footprint_min)
+    footprint_min: int = 0  # > 0: each footprint side drawn from [footprint_min, footprint]
     height_range: tuple[float, float] = (0.2, 0.99)  # fraction of the world height
     targets: tuple[int, int] = (250, 250)  # windows at G = 50 (min, max); scaled like buildings
     target_placement: str = "facade"  # facade (line of sight) | footprint (reference)

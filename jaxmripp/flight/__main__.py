@@ -5,7 +5,8 @@
 
 Writes to --out: result.json (figures), paths.png (3D plot of the paths and the windows
 found) and flight.gif (top-down, as it happened). The city is the voxel world of
-`--seed` (random layout) in a 60 m x 60 m x 30 m box; the team budget is the paper's 7.0.
+`--seed` (random layout, building sides of 2 to 5 voxels) in a 60 m x 60 m x 30 m box; the
+team budget is the paper's 7.0.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxmripp.flight.mission import PLANNERS
+from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -28,16 +30,19 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--planner", default="policy", choices=PLANNERS)
     parser.add_argument("--seed", type=int, default=0, help="city and planner seed")
     parser.add_argument("--budget", type=float, default=7.0, help="team budget")
+    parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
+                        help="building sides drawn from LO..HI voxels (default %(default)s; "
+                             "the shipped policy trained on 3,3)")
     parser.add_argument("--out", type=Path, default=Path("runs/flight"))
     parser.add_argument("--no-pictures", action="store_true")
     args = parser.parse_args(argv)
 
     from jaxmripp.flight import city as citymod
     from jaxmripp.flight.mission import MissionSettings, fly_mission
-    from jaxmripp.flight.team import load_team
+    from jaxmripp.flight.team import load_team, parse_footprints
 
     try:
-        team = load_team(args.export)
+        team = load_team(args.export, parse_footprints(args.footprints))
     except (OSError, ValueError) as error:
         print(f"python -m jaxmripp.flight: {error}", file=sys.stderr)
         return 2

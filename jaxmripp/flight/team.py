@@ -21,20 +21,40 @@ class Team:
     pad_spacing: float
 
 
-def load_team(export: Path) -> Team:
+def load_team(export: Path, footprints: tuple[int, int] | None = None) -> Team:
     """The exported policy in `export` and its world: config.yaml beside policy.json if
     there is one (else the default config's world) at the export's size, random layout
-    (the test layout), the largest window count."""
+    (the test layout), the largest window count; footprints (lo, hi): building sides drawn
+    from lo .. hi voxels instead of the trained world's squares."""
     from jaxmripp import config as cfgmod
 
     exported = fmt.load(export)
     directory = Path(export) if Path(export).is_dir() else Path(export).parent
     cfg = cfgmod.load(directory / "config.yaml" if (directory / "config.yaml").exists()
                       else None)
-    world = dataclasses.replace(cfg.world, size=exported.spec.size, layout="random",
-                                targets=(cfg.world.targets[1],) * 2)
+    world = {"size": exported.spec.size, "layout": "random",
+             "targets": [cfg.world.targets[1]] * 2}
+    if footprints is not None:  # equal sides: the square footprints of the trained world
+        lo, hi = footprints
+        world.update(footprint_min=0 if lo == hi else lo, footprint=hi)
+    world = cfgmod.from_dict({"world": world}, base=cfg).world  # validated
     spacing = exported.header["config"]["robots"].get("pad_spacing", cfg.robots.pad_spacing)
     return Team(exported.spec, exported, world, float(spacing))
+
+
+DEFAULT_FOOTPRINTS = (2, 5)  # building sides in voxels (2.4 m to 6 m in the default box)
+
+
+def parse_footprints(text: str) -> tuple[int, int]:
+    """"LO,HI" -> (LO, HI): building sides drawn from LO .. HI voxels (1 <= LO <= HI)."""
+    try:
+        lo, hi = (int(part) for part in text.split(","))
+    except ValueError:
+        raise ValueError(f"footprints: got {text!r}; allowed: LO,HI (integers, "
+                         "1 <= LO <= HI), e.g. 2,5") from None
+    if not 1 <= lo <= hi:
+        raise ValueError(f"footprints: got {text!r}; allowed: 1 <= LO <= HI")
+    return lo, hi
 
 
 def pads(start, count: int, spacing: float) -> np.ndarray:

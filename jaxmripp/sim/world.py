@@ -4,7 +4,9 @@ Every building is a vertical box standing on the ground, so the ground truth is 
 map: voxel (x, y, z) is occupied iff z < height[x, y] (axes x, y, z; z up). Windows
 (targets) are building voxels, stored in a fixed-capacity list with a validity mask.
 
-Layouts place footprints on a lattice of lots; each lot is at least footprint + clearance
+Footprints are `footprint` voxels square, or with `footprint_min` > 0 rectangles whose sides
+are drawn from [footprint_min, footprint], set in their lot's low corner. Layouts place
+footprints on a lattice of lots sized for the largest footprint; each lot is at least footprint + clearance
 wide and lots start `clearance` voxels from the low border and end at the high border, so
 buildings in distinct lots never overlap and keep `clearance` free voxels between them and
 from the border, by construction and with fixed shapes (no rejection sampling):
@@ -65,11 +67,30 @@ def _footprint_columns(footprint: int) -> np.ndarray:
 
 def _window_columns(cfg: WorldConfig) -> np.ndarray:
     """(P, 2) footprint-relative columns that may hold windows, per cfg.target_placement:
-    the outer ring for facades (every ring voxel faces the clearance gap), else all."""
+    the outer ring for facades (every ring voxel faces the clearance gap), else all. With
+    varied footprints every column of the largest one (`_window_slots` masks them)."""
     cells = _footprint_columns(cfg.footprint)
-    if cfg.target_placement == "facade":
+    if cfg.target_placement == "facade" and not cfg.footprint_min:
         cells = cells[np.any((cells == 0) | (cells == cfg.footprint - 1), axis=1)]
     return cells
+
+
+def _window_slots(sides: jax.Array, cfg: WorldConfig) -> jax.Array:
+    """(B, P) bool: column p of `_window_columns` lies in building b's footprint of
+    `sides` (B, 2), on its outer ring for facades."""
+    cells = jnp.asarray(_window_columns(cfg))[None]  # (1, P, 2)
+    side = sides[:, None, :]
+    inside = jnp.all(cells < side, axis=-1)
+    if cfg.target_placement != "facade":
+        return inside
+    return inside & jnp.any((cells == 0) | (cells == side - 1), axis=-1)
+
+
+def _fewest_window_columns(cfg: WorldConfig) -> int:
+    """Window columns of the smallest footprint a building can have."""
+    side = cfg.footprint_min or cfg.footprint
+    inner = max(side - 2, 0) ** 2 if cfg.target_placement == "facade" else 0
+    return side * side - inner
 
 
 def _height_bounds(cfg: WorldConfig) -> tuple[int, int]:
@@ -87,7 +108,7 @@ def _check(cfg: WorldConfig) -> None:
     if cfg.target_placement == "facade" and cfg.clearance < 1:
         raise ValueError("world: facade windows need world.clearance >= 1 so that every "
                          "perimeter voxel faces free space")
-    slots = n * len(_window_columns(cfg)) * _height_bounds(cfg)[0]
+    slots = n * _fewest_window_columns(cfg) * _height_bounds(cfg)[0]
     if cfg.target_capacity > slots:
         raise ValueError(f"world: {cfg.target_capacity} windows requested but the lowest "
                          f"possible city only has {slots} {cfg.target_placement} voxels")
@@ -124,14 +145,19 @@ def _random_origins(key: chex.PRNGKey, cfg: WorldConfig) -> jax.Array:
     return jnp.asarray(start)[lot] + jitter
 
 
-def _height_map(origins: jax.Array, heights: jax.Array, cfg: WorldConfig) -> jax.Array:
-    columns = origins[:, None, :] + _footprint_columns(cfg.footprint)[None]  # (B, F, 2)
+def _height_map(origins: jax.Array, heights: jax.Array, cfg: WorldConfig,
+                sides: jax.Array | None = None) -> jax.Array:
+    offsets = _footprint_columns(cfg.footprint)
+    columns = origins[:, None, :] + offsets[None]  # (B, F, 2)
     values = jnp.broadcast_to(heights[:, None], columns.shape[:2])
+    if sides is not None:  # columns outside a smaller footprint add nothing
+        values = jnp.where(jnp.all(offsets[None] < sides[:, None], axis=-1), values, 0)
     return jnp.zeros((cfg.size, cfg.size), jnp.int32).at[
         columns[..., 0], columns[..., 1]].max(values)
 
 
-def _windows(key: chex.PRNGKey, origins: jax.Array, heights: jax.Array, cfg: WorldConfig):
+def _windows(key: chex.PRNGKey, origins: jax.Array, heights: jax.Array, cfg: WorldConfig,
+             sides: jax.Array | None = None):
     """Draws distinct window voxels among (building, column, z) slots below each roof.
 
     Each building gets a random weight (exponential, i.e. Dirichlet(1) shares); Gumbel
@@ -145,8 +171,15 @@ def _windows(key: chex.PRNGKey, origins: jax.Array, heights: jax.Array, cfg: Wor
     weight = jax.random.exponential(key_weight, heights.shape)
     z = jnp.arange(size)
     below_roof = z[None, :] < heights[:, None]  # (B, G)
-    log_w = jnp.log(weight) - jnp.log((n_cols * heights).astype(jnp.float32))
-    logits = jnp.where(below_roof[:, None, :], log_w[:, None, None], -jnp.inf)
+    if sides is None:
+        log_w = jnp.log(weight) - jnp.log((n_cols * heights).astype(jnp.float32))
+        logits = jnp.where(below_roof[:, None, :], log_w[:, None, None], -jnp.inf)
+    else:
+        slot = _window_slots(sides, cfg)  # (B, P)
+        cols = jnp.sum(slot, axis=1)
+        log_w = jnp.log(weight) - jnp.log((cols * heights).astype(jnp.float32))
+        logits = jnp.where(below_roof[:, None, :] & slot[:, :, None], log_w[:, None, None],
+                           -jnp.inf)
     logits = jnp.broadcast_to(logits, (heights.shape[0], n_cols, size)).reshape(-1)
     scores = logits + jax.random.gumbel(key_gumbel, logits.shape)
     _, slot = jax.lax.top_k(scores, capacity)  # best first; _check guarantees finite scores
@@ -169,8 +202,12 @@ def generate(key: chex.PRNGKey, cfg: WorldConfig) -> World:
     lo, hi = cfg.height_range
     u = jax.random.uniform(key_height, (cfg.n_buildings,), minval=lo, maxval=hi)
     heights = jnp.clip(jnp.floor(u * cfg.size).astype(jnp.int32), *_height_bounds(cfg))
-    target_voxel, target_valid = _windows(key_window, origins, heights, cfg)
-    return World(height=_height_map(origins, heights, cfg), target_voxel=target_voxel,
+    sides = None
+    if cfg.footprint_min:  # a key of its own: square-footprint cities stay as they were
+        sides = jax.random.randint(jax.random.fold_in(key, 1), (cfg.n_buildings, 2),
+                                   cfg.footprint_min, cfg.footprint + 1)
+    target_voxel, target_valid = _windows(key_window, origins, heights, cfg, sides)
+    return World(height=_height_map(origins, heights, cfg, sides), target_voxel=target_voxel,
                   target_valid=target_valid)
 
 
