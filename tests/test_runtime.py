@@ -24,6 +24,7 @@ from jaxmripp.config import GPConfig
 from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError, MessageError,
                               OnboardPlanner, PlannerStateError, ProtocolVersionError,
                               RuntimeSpec, WeightsFormatError)
+from jaxmripp.runtime.weights import FEATURES
 from jaxmripp.runtime import candidates as np_candidates
 from jaxmripp.runtime import flight, messages, weights
 from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
@@ -419,3 +420,28 @@ def test_policy_mode_needs_weights_and_ids_are_checked():
         OnboardPlanner(spec_of(), 0, budget=1.0, mode="policy")
     with pytest.raises(ValueError, match="robot_id"):
         OnboardPlanner(spec_of(), 3, budget=1.0, team_size=3)
+
+
+def test_nbv_and_random_modes_choose_among_the_safe_candidates():
+    """nbv takes the largest view gain per cost (spec.layout.nbv_score, by hand from the
+    features it was given); random takes a safe candidate, and different seeds differ."""
+    spec = spec_of()
+    planner = OnboardPlanner(spec, 0, budget=0.5, team_size=3, facade_weight=2.0)
+    sense_free(planner, position=(0.5, 0.5, 0.2))
+    planner.map.grid[:, 20:, :] = UNKNOWN  # unknown space on one side: gains differ
+    d = planner.decide(mode="nbv")
+    f = d.features
+    score = f[:, FEATURES.index("view_unknown_per_cost")] \
+        + 2.0 * f[:, FEATURES.index("view_facade_per_cost")]
+    assert d.reason == "nbv" and d.mask[d.index]
+    assert score[d.index] == np.max(score[d.mask]) and np.ptp(score[d.mask]) > 0
+    picks = set()
+    for seed in range(6):
+        robot = OnboardPlanner(spec, 0, budget=0.5, team_size=3, mode="random", seed=seed)
+        sense_free(robot, position=(0.5, 0.5, 0.2))
+        d = robot.decide()
+        assert d.reason == "random" and d.mask[d.index]
+        picks.add(tuple(d.pose))
+    assert len(picks) > 1
+    with pytest.raises(ValueError, match="allowed: greedy, nbv, random$"):
+        planner.decide(mode="oracle")
