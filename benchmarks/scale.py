@@ -19,9 +19,17 @@ global communication (rho = inf: everyone hears everyone every step). Figures:
                                       communication (R: world volume over G = 50's)
     scale.relay_vs_best_global_p      Welch p of that comparison
 
+With --grid (instead of the timing), the paper's scalability grid: every world size of
+--world-sizes (3x / 8x / 16x: G = 75 / 100 / 125, with the paper's rho = 0.2 / 0.15 /
+0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval,
+W worlds per cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std,
+95% half-width) and, with --figure, % found against N per world size with std bands.
+
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
         [--eval --worlds W --policy pretrained/default] [--set key=value ...]
+    python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
+        [--worlds W] [--figure docs/scale_grid.png]
 """
 
 from __future__ import annotations
@@ -53,11 +61,25 @@ def main(argv=None) -> int:
     parser.add_argument("--eval", action="store_true", help="also evaluate the largest team")
     parser.add_argument("--worlds", type=int, default=4, help="worlds of the --eval cell")
     parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
-                        help="trained run or shipped folder for --eval")
+                        help="trained run or shipped folder for --eval and --grid")
+    parser.add_argument("--grid", action="store_true", help="the scalability grid only")
+    parser.add_argument("--world-sizes", default="75,100,125")
+    parser.add_argument("--grid-teams", default="16,32,48,64")
+    parser.add_argument("--figure", type=Path, default=None, help="--grid: the plot")
     args = parser.parse_args(argv)
-    if args.eval and not (args.policy / "config.yaml").is_file():
+    if (args.eval or args.grid) and not (args.policy / "config.yaml").is_file():
         print(f"error: --policy {args.policy}: no config.yaml there", file=sys.stderr)
         return 2
+    if args.grid:
+        sizes = [int(g) for g in args.world_sizes.split(",")]
+        unknown = sorted(set(sizes) - set(PAPER_RADIO))
+        if unknown:
+            print(f"error: --world-sizes {unknown}: allowed {sorted(PAPER_RADIO)} (the paper's "
+                  "worlds, each with its radio range)", file=sys.stderr)
+            return 2
+        evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
+                      args.worlds, args.set, args.figure)
+        return 0
     teams = sorted(int(n) for n in args.teams.split(","))
     micros = {}
     for n in teams:
@@ -85,17 +107,23 @@ def main(argv=None) -> int:
     return 0
 
 
-def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: int,
-                  overrides: list[str]) -> None:
+PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
+
+
+def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
+                    worlds: int, overrides: list[str]) -> dict:
+    """The policy with single-hop exchange and with relay at radio_range, and the policy,
+    coordinated and nbv_team with global communication, on the same held-out worlds for
+    every team size -> {(planner, exchange, n): % found per world}."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
-    from jaxmripp.evaluation import stats, sweep  # noqa: PLC0415
+    from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
     run_cfg = config.load(policy / "config.yaml")
     planner = pipeline.trained_planner(run_cfg, policy)
-    cell = [f"eval.team_sizes=[{n}]", f"eval.world_sizes=[{size}]", "eval.budgets=[3.3333333]",
-            "eval.budget_mode=per_robot", f"eval.worlds={worlds}", "eval.trials=1",
-            "eval.layout=random", "eval.seed=2000", "eval.render=false", "eval.pairs=[]",
-            *overrides]
+    cell = [f"eval.team_sizes=[{', '.join(map(str, teams))}]", f"eval.world_sizes=[{size}]",
+            "eval.budgets=[3.3333333]", "eval.budget_mode=per_robot", f"eval.worlds={worlds}",
+            "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
+            "eval.pairs=[]", "eval.zip_with_size=[]", *overrides]
     exchanges = {
         "global": [*cell, "eval.radio_ranges=[.inf]",
                    "eval.planners=[policy, coordinated, nbv_team]"],
@@ -109,16 +137,68 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
         result = sweep.run_sweep(cfg, {"policy": planner}, time_planning=False,
                                  keep_pictures=False, log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:
-            found[run.planner, exchange] = run.discovered
-            mean, std, half = stats.mean_ci(run.discovered)
-            emit(f"scale.pct.{run.planner}.{exchange}", mean, "%", std=round(std, 2),
-                 ci95_half=round(half, 2), worlds=worlds, n=n, size=size)
+            found[run.planner, exchange, run.shape.n_robots] = run.discovered
+    return found
+
+
+def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: int,
+                  overrides: list[str]) -> None:
+    from jaxmripp.evaluation import stats  # noqa: PLC0415
+
+    found = sweep_exchanges(policy, [n], size, radio_range, worlds, overrides)
+    for (planner, exchange, _), discovered in found.items():
+        mean, std, half = stats.mean_ci(discovered)
+        emit(f"scale.pct.{planner}.{exchange}", mean, "%", std=round(std, 2),
+             ci95_half=round(half, 2), worlds=worlds, n=n, size=size)
     best = max((k for k in found if k[1] == "global"), key=lambda k: found[k].mean())
-    relay = found["policy", "relay"]
+    relay = found["policy", "relay", n]
     ratio = round((size / config.REFERENCE_SIZE) ** 3)
     emit(f"scale.relay_vs_best_global_{ratio}x",
          relay.mean() / max(found[best].mean(), 1e-9), "ratio", best_global=best[0])
     emit_p("scale.relay_vs_best_global_p", stats.welch_ttest(relay, found[best])[2])
+
+
+def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
+                  overrides: list[str], figure: Path | None) -> None:
+    from jaxmripp.evaluation import stats  # noqa: PLC0415
+
+    grid = {}
+    for size in sizes:
+        found = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides)
+        for (planner, exchange, n), discovered in sorted(found.items()):
+            mean, std, half = stats.mean_ci(discovered)
+            grid[planner, exchange, size, n] = (mean, std)
+            emit(f"scale.grid.{planner}.{exchange}.g{size}.n{n}", mean, "%",
+                 std=round(std, 2), ci95_half=round(half, 2), worlds=worlds)
+    if figure is not None:
+        plot_grid(grid, sizes, figure)
+
+
+def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
+    """% found against team size, one panel per world size, std bands."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, axes = plt.subplots(1, len(sizes), figsize=(4.2 * len(sizes), 3.6), squeeze=False)
+    lines = sorted({(planner, exchange) for planner, exchange, _, _ in grid})
+    for ax, size in zip(axes[0], sizes):
+        for planner, exchange in lines:
+            ns = sorted(n for p, e, g, n in grid if (p, e, g) == (planner, exchange, size))
+            mean = [grid[planner, exchange, size, n][0] for n in ns]
+            std = [grid[planner, exchange, size, n][1] for n in ns]
+            ax.plot(ns, mean, marker="o", label=f"{planner}, {exchange.replace('_', ' ')}")
+            ax.fill_between(ns, [m - s for m, s in zip(mean, std)],
+                            [m + s for m, s in zip(mean, std)], alpha=0.15)
+        ratio = round((size / config.REFERENCE_SIZE) ** 3)
+        ax.set(title=f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})",
+               xlabel="robots N", ylabel="% windows found", ylim=(0, 100))
+        ax.grid(alpha=0.3)
+    axes[0][0].legend(fontsize=7, loc="lower right")
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
 
 
 if __name__ == "__main__":

@@ -4,8 +4,10 @@ The depth camera is a ray caster against the scene's collision shapes (pybullet'
 `rayTestBatch`, one ray per pixel centre), mounted on each drone looking along its body x
 axis (the heading). Windows are ground truth, as in the paper: a window counts as seen
 from a camera when one of its faces lies inside the image, within range, faces the camera
-and the straight line to it meets nothing. A crash is any contact of a drone's body with a
-building, the ground or another drone, read from the physics engine after every step.
+and the straight line to it meets nothing. A crash is a contact of a drone's body with a
+building, the ground or another drone, read from the physics engine after every step and
+counted once when it begins (a drone resting against a wall is one crash, not one per
+step).
 """
 
 from __future__ import annotations
@@ -66,6 +68,7 @@ class Scene:
         self.body_to_drone = {d.body: i for i, d in enumerate(self.drones)}
         self.time = 0.0
         self.crashes: list[Crash] = []
+        self._touching: set[tuple[int, str]] = set()  # (drone, other) in contact now
 
     def _markers(self) -> None:
         """Thin dark panels on the walls where the windows are (pictures only: visual
@@ -90,13 +93,16 @@ class Scene:
             drone.apply_control(self.dt)
         self.p.stepSimulation(physicsClientId=self.client)
         self.time += self.dt
+        touching = set()
         for i, drone in enumerate(self.drones):
             for contact in self.p.getContactPoints(bodyA=drone.body,
                                                    physicsClientId=self.client):
                 other = contact[2]
-                name = ("ground" if other == self.ground else "building"
-                        if other in self.buildings else f"drone {self.body_to_drone.get(other)}")
-                self.crashes.append(Crash(self.time, i, name))
+                touching.add((i, "ground" if other == self.ground else "building"
+                              if other in self.buildings
+                              else f"drone {self.body_to_drone.get(other)}"))
+        self.crashes += [Crash(self.time, i, name) for i, name in sorted(touching - self._touching)]
+        self._touching = touching
 
     def positions(self) -> np.ndarray:
         return np.array([d.state()[0] for d in self.drones])
