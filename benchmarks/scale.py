@@ -169,7 +169,8 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
             mean, std, half = stats.mean_ci(discovered)
             grid[planner, exchange, size, n] = (mean, std)
             emit(f"scale.grid.{planner}.{exchange}.g{size}.n{n}", mean, "%",
-                 std=round(std, 2), ci95_half=round(half, 2), worlds=worlds)
+                 std=round(std, 2), ci95_half=round(half, 2) if worlds > 1 else None,
+                 worlds=worlds)
     if figure is not None:
         plot_grid(grid, sizes, figure)
 
