@@ -4,10 +4,10 @@ Every building is a vertical box standing on the ground, so the ground truth is 
 map: voxel (x, y, z) is occupied iff z < height[x, y] (axes x, y, z; z up). Windows
 (targets) are building voxels, stored in a fixed-capacity list with a validity mask.
 
-Footprints are `footprint` voxels square, or with `footprint_min` > 0 rectangles whose sides
-are drawn from [footprint_min, footprint], set in their lot's low corner. Layouts place
-footprints on a lattice of lots sized for the largest footprint; each lot is at least footprint + clearance
-wide and lots start `clearance` voxels from the low border and end at the high border, so
+Footprints are `footprint` voxels square, or with `footprint_min` > 0 rectangles whose
+sides are drawn from [footprint_min, footprint], set in their lot's low corner. Layouts
+place footprints on a lattice of lots sized for the largest footprint; each lot is at
+least footprint + clearance wide and lots start `clearance` voxels from the low border and end at the high border, so
 buildings in distinct lots never overlap and keep `clearance` free voxels between them and
 from the border, by construction and with fixed shapes (no rejection sampling):
 - grid: one lot per building, as few rows as possible, each building centred in its lot;
@@ -171,16 +171,11 @@ def _windows(key: chex.PRNGKey, origins: jax.Array, heights: jax.Array, cfg: Wor
     weight = jax.random.exponential(key_weight, heights.shape)
     z = jnp.arange(size)
     below_roof = z[None, :] < heights[:, None]  # (B, G)
-    if sides is None:
-        log_w = jnp.log(weight) - jnp.log((n_cols * heights).astype(jnp.float32))
-        logits = jnp.where(below_roof[:, None, :], log_w[:, None, None], -jnp.inf)
-    else:
-        slot = _window_slots(sides, cfg)  # (B, P)
-        cols = jnp.sum(slot, axis=1)
-        log_w = jnp.log(weight) - jnp.log((cols * heights).astype(jnp.float32))
-        logits = jnp.where(below_roof[:, None, :] & slot[:, :, None], log_w[:, None, None],
-                           -jnp.inf)
-    logits = jnp.broadcast_to(logits, (heights.shape[0], n_cols, size)).reshape(-1)
+    slot = (jnp.ones((heights.shape[0], n_cols), bool) if sides is None
+            else _window_slots(sides, cfg))  # (B, P) columns that may hold windows
+    log_w = jnp.log(weight) - jnp.log((jnp.sum(slot, axis=1) * heights).astype(jnp.float32))
+    logits = jnp.where(below_roof[:, None, :] & slot[:, :, None], log_w[:, None, None],
+                       -jnp.inf).reshape(-1)
     scores = logits + jax.random.gumbel(key_gumbel, logits.shape)
     _, slot = jax.lax.top_k(scores, capacity)  # best first; _check guarantees finite scores
     building, rest = jnp.divmod(slot, n_cols * size)
