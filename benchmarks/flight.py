@@ -5,13 +5,14 @@ view) on simulated quadrotors, over W cities (`jaxmripp.flight`).
         [--planners policy,random,nbv] [--budget 7.0] [--footprints 2,5]
 
 Every planner flies the same cities (seeds first_seed .. first_seed + W - 1, random
-layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export). Prints JSON lines: flight.<planner>_pct
-(mean, with std and 95% half-width), flight.policy_vs_random, flight.crashes (all
-planners, all missions), flight.decision_ms (median per robot decision, policy),
-flight.sense_ms (median depth image -> map update), flight.sim_realtime_factor
-(simulated seconds per wall second, all missions), flight.max_speed,
-flight.track_error_m (farthest from a line of flight), flight.late_arrivals and
-flight.false_free_voxels (building voxels some map held FREE; 0 by the depth rule).
+layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export). Prints
+JSON lines: flight.<planner>_pct (mean, with std and 95% half-width),
+flight.policy_vs_random, flight.crashes (all planners, all missions), flight.decision_ms
+(median per robot decision, policy), flight.sense_ms (median depth image -> map update),
+flight.sim_realtime_factor (simulated seconds per wall second, all missions),
+flight.max_speed, flight.track_error_m (farthest from a line of flight),
+flight.late_arrivals and flight.false_free_voxels (building voxels some map held FREE; 0
+by the depth rule).
 """
 
 from __future__ import annotations

@@ -36,8 +36,9 @@ from jaxmripp.runtime.weights import (FEATURES, FORMAT_VERSION, ROBOT_STATE, Exp
                                       RuntimeSpec, load)
 
 __all__ = [
-    "Candidates", "CorruptWeightsError", "Decision", "DepthCamera", "ExportedPolicy", "FEATURES",
-    "FORMAT_VERSION", "GridFrame", "InvalidPoseError", "MapDelta", "MapMessage", "Message", "MessageError",
+    "Candidates", "CorruptWeightsError", "Decision", "DepthCamera", "ExportedPolicy",
+    "FEATURES", "FORMAT_VERSION", "GridFrame", "InvalidPoseError", "MapDelta", "MapMessage",
+    "Message", "MessageError",
     "NumpyPolicy", "OnboardPlanner", "PROTOCOL_VERSION", "PlannerStateError",
     "ProtocolVersionError", "ROBOT_STATE", "RuntimeInputError", "RuntimeSpec",
     "WeightsFormatError", "decode", "decode_map", "encode", "encode_map", "load",

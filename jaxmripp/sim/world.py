@@ -7,9 +7,10 @@ map: voxel (x, y, z) is occupied iff z < height[x, y] (axes x, y, z; z up). Wind
 Footprints are `footprint` voxels square, or with `footprint_min` > 0 rectangles whose
 sides are drawn from [footprint_min, footprint], set in their lot's low corner. Layouts
 place footprints on a lattice of lots sized for the largest footprint; each lot is at
-least footprint + clearance wide and lots start `clearance` voxels from the low border and end at the high border, so
-buildings in distinct lots never overlap and keep `clearance` free voxels between them and
-from the border, by construction and with fixed shapes (no rejection sampling):
+least footprint + clearance wide and lots start `clearance` voxels from the low border
+and end at the high border, so buildings in distinct lots never overlap and keep
+`clearance` free voxels between them and from the border, by construction and with fixed
+shapes (no rejection sampling):
 - grid: one lot per building, as few rows as possible, each building centred in its lot;
 - random: a finer lattice (about `_RANDOM_LOTS_PER_BUILDING` lots per building) from which
   a random subset of lots is drawn, each building jittered uniformly inside its lot.
