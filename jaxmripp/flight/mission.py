@@ -154,15 +154,13 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
             max_speed, track_error = max(max_speed, speed), max(track_error, error)
             late += not on_time
     finally:
-        sim_seconds = scene.time
-        solid = (np.arange(city.size)[None, None, :] < city.height[:, :, None]).reshape(-1)
-        crashes = list(scene.crashes)
         scene.close()
+    solid = (np.arange(city.size)[None, None, :] < city.height[:, :, None]).reshape(-1)
     return MissionResult(
         planner=planner, windows=city.n_windows, found=np.isfinite(found_time),
-        crashes=crashes, rounds=step, late_arrivals=late,
+        crashes=list(scene.crashes), rounds=step, late_arrivals=late,
         false_free=sum(int(np.sum((p.map.codes == FREE) & solid)) for p in planners),
-        sim_seconds=sim_seconds,
+        sim_seconds=scene.time,
         wall_seconds=time.perf_counter() - wall_start, decision_ms=decision_ms,
         sense_ms=sense_ms, max_speed=max_speed, track_error=track_error,
         path_time=np.asarray(path_time), path=np.asarray(path), found_time=found_time,

@@ -37,8 +37,7 @@ class Scene:
     """A pybullet world (DIRECT, no window) with the city, the ground and the drones."""
 
     def __init__(self, city: City, starts_m: np.ndarray, yaws: np.ndarray,
-                 params: QuadrotorParams = QuadrotorParams(), physics_hz: int = 240,
-                 window_markers: bool = False):
+                 params: QuadrotorParams = QuadrotorParams(), physics_hz: int = 240):
         import pybullet
 
         self.p = pybullet
@@ -62,24 +61,11 @@ class Scene:
                                        rgbaColor=[0.75, 0.72, 0.68, 1], physicsClientId=c)
             self.buildings.add(p.createMultiBody(0, shape, look, list(centre),
                                                  physicsClientId=c))
-        if window_markers and len(city.face_point):
-            self._markers()
         self.drones = [Quadrotor(c, params, start, yaw) for start, yaw in zip(starts_m, yaws)]
         self.body_to_drone = {d.body: i for i, d in enumerate(self.drones)}
         self.time = 0.0
         self.crashes: list[Crash] = []
         self._touching: set[tuple[int, str]] = set()  # (drone, other) in contact now
-
-    def _markers(self) -> None:
-        """Thin dark panels on the walls where the windows are (pictures only: visual
-        shapes, no collision, so neither the camera nor the drones meet them)."""
-        p, c = self.p, self.client
-        voxel = self.city.voxel_metres
-        for point, normal in zip(self.city.face_point, self.city.face_normal):
-            half = np.where(normal != 0, 0.01, 0.3 * voxel)
-            look = p.createVisualShape(p.GEOM_BOX, halfExtents=list(half),
-                                       rgbaColor=[0.15, 0.3, 0.6, 1], physicsClientId=c)
-            p.createMultiBody(0, -1, look, list(point + normal * 0.011), physicsClientId=c)
 
     def close(self) -> None:
         self.p.disconnect(physicsClientId=self.client)
@@ -121,14 +107,9 @@ class Scene:
         pixel centre from `min_range` to `max_range`."""
         rays = camera.directions()
         world = (rays @ rotation.T).reshape(-1, 3)
-        start = position + world * camera.min_range
-        end = position + world * camera.max_range
-        fraction = np.ones(len(world))
-        for lo in range(0, len(world), RAY_BATCH):
-            hits = self.p.rayTestBatch(start[lo:lo + RAY_BATCH].tolist(),
-                                       end[lo:lo + RAY_BATCH].tolist(),
-                                       physicsClientId=self.client)
-            fraction[lo:lo + len(hits)] = [h[2] if h[0] >= 0 else 1.0 for h in hits]
+        hits = self._cast(position + world * camera.min_range,
+                          position + world * camera.max_range)
+        fraction = np.array([h[2] if h[0] >= 0 else 1.0 for h in hits])
         length = camera.min_range + fraction * (camera.max_range - camera.min_range)
         depth = (length * rays[..., 2].reshape(-1)).reshape(camera.height, camera.width)
         return np.where(fraction.reshape(depth.shape) < 1.0, depth, np.inf)
@@ -157,24 +138,15 @@ class Scene:
         ends = city.face_point[candidates] + WINDOW_LIFT * city.face_normal[candidates]
         direction = (ends - position) / distance[candidates, None]
         starts = position + direction * camera.min_range
-        clear = []
-        for lo in range(0, len(candidates), RAY_BATCH):
-            hits = self.p.rayTestBatch(starts[lo:lo + RAY_BATCH].tolist(),
-                                       ends[lo:lo + RAY_BATCH].tolist(),
-                                       physicsClientId=self.client)
-            clear += [h[0] < 0 for h in hits]
-        return np.unique(city.face_window[candidates[np.asarray(clear, bool)]])
+        clear = np.array([h[0] < 0 for h in self._cast(starts, ends)], bool)
+        return np.unique(city.face_window[candidates[clear]])
 
-    # -----------------------------------------------------------------------------------
-    # Pictures
-
-    def render(self, eye, target, pixels=(480, 360), fov_deg: float = 60.0) -> np.ndarray:
-        """(H, W, 3) uint8 picture from a camera at `eye` looking at `target` (CPU
-        renderer)."""
-        p = self.p
-        view = p.computeViewMatrix(list(eye), list(target), [0, 0, 1])
-        projection = p.computeProjectionMatrixFOV(fov_deg, pixels[0] / pixels[1], 0.5, 400)
-        _, _, rgba, _, _ = p.getCameraImage(pixels[0], pixels[1], view, projection,
-                                            renderer=p.ER_TINY_RENDERER,
-                                            physicsClientId=self.client)
-        return np.asarray(rgba, np.uint8).reshape(pixels[1], pixels[0], 4)[..., :3]
+    def _cast(self, starts: np.ndarray, ends: np.ndarray) -> list:
+        """pybullet's rayTestBatch over any number of rays: one hit tuple per ray (body
+        id -1 where the ray meets nothing; [2] is the hit fraction)."""
+        hits = []
+        for lo in range(0, len(starts), RAY_BATCH):
+            hits += self.p.rayTestBatch(starts[lo:lo + RAY_BATCH].tolist(),
+                                        ends[lo:lo + RAY_BATCH].tolist(),
+                                        physicsClientId=self.client)
+        return hits

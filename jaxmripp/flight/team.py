@@ -7,17 +7,21 @@ from __future__ import annotations
 import dataclasses
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from jaxmripp.runtime import weights as fmt
+
+if TYPE_CHECKING:
+    from jaxmripp.config import WorldConfig
 
 
 @dataclasses.dataclass(frozen=True)
 class Team:
     spec: fmt.RuntimeSpec
     exported: fmt.ExportedPolicy
-    world: object  # jaxmripp.config.WorldConfig of the cities to fly in
+    world: WorldConfig  # the cities to fly in
     pad_spacing: float
 
 
