@@ -4,9 +4,12 @@ Prints JSON lines:
     distributed.max_param_rel_diff   largest relative parameter difference, P processes vs 1
     distributed.samples_per_s.p1     agent-steps per second of training, 1 process
     distributed.samples_per_s.p<P>   the same with P processes
-(rates are medians over the chunks after the first, which compiles).
+(rates are medians over the chunks after the first, which compiles). Both runs compute
+their environments in `--blocks` blocks (train.blocks; default: the process count, so
+every run has the same blocks and the parameters agree to the bit); `--blocks 0` gives
+each device one block, the fastest layout, whose parameters drift with the device count.
 
-Usage: python benchmarks/distributed.py [--processes 2] [--config configs/default.yaml]
+Usage: python benchmarks/distributed.py [--processes 2] [--blocks B] [--config FILE]
            [--keep DIR] [override ...]   (default overrides: a 32-environment, 4-update run)
 """
 
@@ -33,6 +36,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, default=2)
+    parser.add_argument("--blocks", type=int, help="train.blocks (default: --processes)")
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--keep", type=Path, help="keep the run folders here (default: a "
                         "temporary folder)")
@@ -40,8 +44,10 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.processes < 2:
         parser.error(f"--processes: got {args.processes}; allowed: 2 or more")
+    blocks = args.processes if args.blocks is None else args.blocks
+    overrides = [*args.overrides, f"train.blocks={blocks}"]
     try:
-        cfg = cfgmod.load(args.config, args.overrides)
+        cfg = cfgmod.load(args.config, overrides)
     except cfgmod.ConfigError as err:
         parser.error(str(err))
 
@@ -52,7 +58,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for processes in (1, args.processes):
             runs = (args.keep or Path(tmp)) / f"p{processes}"
-            command = ["train.py", "--config", args.config, *args.overrides, "--no-eval",
+            command = ["train.py", "--config", args.config, *overrides, "--no-eval",
                        "--runs", str(runs)]
             for i, result in enumerate(run_local(command, processes, timeout_s=3600)):
                 if result.returncode:

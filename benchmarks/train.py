@@ -93,7 +93,8 @@ def main() -> None:
     _, batch, _ = rollout(jax.random.PRNGKey(3), runner, state.params, dyn)
     last_value = jnp.zeros(batch.reward.shape[1:])
     update = jax.jit(lambda key, params, opt: ppo.update(
-        key, params, opt, trainer.network, trainer.optimizer, batch, last_value, cfg.ppo))
+        key, params, opt, trainer.network, trainer.optimizer, batch, last_value, cfg.ppo,
+        cfg.train.blocks))
     seconds_update = median_seconds(
         lambda: update(jax.random.PRNGKey(4), state.params, state.opt_state),
         repeats=args.rounds)

@@ -59,6 +59,8 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("ppo.algo=sac", "one of ippo, mappo"),
         ("gp.noise=0", "gp.noise: got 0.0"),
         ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),
+        ("train.blocks=3", "train.blocks: got 3; allowed: 0 or a divisor of the environments "
+                           "per minibatch (train.envs / ppo.minibatches = 16)"),
     ],
 )
 def test_bad_values_give_one_clear_line(override, needle):

@@ -114,6 +114,7 @@ RULES: dict[str, tuple] = {
     "train.updates": _range(0, 10**9),
     "train.updates_per_chunk": _range(1, 10**6),
     "train.keep_checkpoints": _range(1, 1000),
+    "train.blocks": _range(0, 1 << 20),
     "train.eval_worlds": _range(1, 100_000),
     "train.eval_budget": _POSITIVE,
     "eval.planners": (
@@ -198,6 +199,11 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.train.envs % cfg.ppo.minibatches:
         problems.append(("ppo.minibatches", cfg.ppo.minibatches,
                          f"a divisor of train.envs = {cfg.train.envs}"))
+    per_minibatch = cfg.train.envs // max(cfg.ppo.minibatches, 1)
+    if cfg.train.blocks and per_minibatch % cfg.train.blocks:
+        problems.append(("train.blocks", cfg.train.blocks,
+                         f"0 or a divisor of the environments per minibatch (train.envs / "
+                         f"ppo.minibatches = {per_minibatch})"))
     return problems
 
 

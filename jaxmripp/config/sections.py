@@ -150,6 +150,9 @@ class TrainConfig:
     reset_share: float = 0.25  # most environments restarted per rollout step, as a share
     updates: int = 100
     updates_per_chunk: int = 10
+    # Environments are computed in this many equal blocks (0: one per device); every
+    # device count dividing it trains to the same parameters (jaxmripp.parallel.blocks).
+    blocks: int = 0
     keep_checkpoints: int = 3
     eval_worlds: int = 100
     eval_budget: float = 10.0

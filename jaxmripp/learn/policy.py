@@ -68,6 +68,17 @@ def distribution(logits: jax.Array, mask: jax.Array) -> distrax.Categorical:
     return distrax.Categorical(logits=masked_logits(logits, mask))
 
 
+def softmax(x: jax.Array) -> jax.Array:
+    """Softmax over the last axis, normalised by multiplying with the reciprocal sum.
+
+    `jax.nn.softmax` divides by the broadcast sum, and XLA rewrites that division into a
+    multiplication in some programs and not in others (it did for a 1-device program and
+    not for its 2-device partition), which changes the last bit; written as a product it
+    is the same arithmetic in every program."""
+    exp = jnp.exp(x - jax.lax.stop_gradient(x.max(axis=-1, keepdims=True)))
+    return exp * (1.0 / exp.sum(axis=-1, keepdims=True))
+
+
 def initial_memory(config: PolicyConfig) -> jax.Array:
     """The GRU memory at the start of an episode: (W,) zeros."""
     return jnp.zeros((config.width,), jnp.float32)
@@ -98,7 +109,7 @@ class Attention(nn.Module):
         # Masked keys get the finite floor rather than -inf: if every key is masked the
         # softmax is uniform (finite) instead of 0/0.
         scores = masked_logits(scores, context_mask[..., None, None, :])
-        weights = jax.nn.softmax(scores, axis=-1)  # (..., H, Q, K)
+        weights = softmax(scores)  # (..., H, Q, K)
         out = jnp.swapaxes(weights @ v, -3, -2)  # (..., Q, H, D)
         return nn.Dense(self.width, name="out")(out.reshape(queries.shape))
 

@@ -6,8 +6,10 @@ with each transition and fed back unchanged in the update (one-step truncated
 backpropagation through time), so minibatches of whole environments stay consistent.
 
 With a `DataParallel` layout every E-axis array is kept split over the devices (the
-environments step where they live, a minibatch's gradient is summed across devices by the
-compiler); without one the functions are plain single-device code.
+environments step where they live); without one the functions are plain single-device
+code. The network runs, and a minibatch's gradient is summed, over `blocks` equal blocks
+of environments (`jaxmripp.parallel.blocks`), so a run gives the same parameters to the
+bit on every device count that divides `blocks`.
 """
 
 from __future__ import annotations
@@ -25,6 +27,7 @@ from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
+from jaxmripp.parallel.blocks import map_blocks, sum_blocks
 from jaxmripp.parallel.mesh import DataParallel
 
 
@@ -93,6 +96,29 @@ def apply_batched(network: ActorCritic, params, memory, obs: Observation):
     return unflat(new_memory), unflat(logits), unflat(value)
 
 
+def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: int,
+        data: DataParallel | None = None):
+    """The policy's step for every robot of E environments, block by block: memory
+    (E, N, W), obs (E, N, ...) and one key per environment (E, 2) -> new memory
+    (E, N, W), sampled action, its log-probability and the value (E, N)."""
+
+    def block(inputs, params):
+        memory, obs, keys = inputs
+        memory, logits, value = apply_batched(network, params, memory, obs)
+        action = jax.vmap(lambda key, logits, mask: distribution(logits, mask).sample(
+            seed=key))(keys, logits, obs.mask)
+        return memory, action, distribution(logits, obs.mask).log_prob(action), value
+
+    return map_blocks(block, (memory, obs, keys), params, blocks, data)
+
+
+def values(network: ActorCritic, params, memory, obs: Observation, blocks: int,
+           data: DataParallel | None = None):
+    """The critic's values (E, N), block by block like `act`."""
+    return map_blocks(lambda inputs, params: apply_batched(network, params, *inputs)[2],
+                      (memory, obs), params, blocks, data)
+
+
 def _split(tree, data: DataParallel | None, axis: int = 0):
     return tree if data is None else data.constrain(tree, axis)
 
@@ -120,10 +146,9 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
     def body(carry, key):
         runner, pool_used = carry
         key_act, key_env = jax.random.split(key)
-        memory, logits, value = apply_batched(network, net_params, runner.memory, runner.obs)
-        dist = distribution(logits, runner.obs.mask)
-        action = dist.sample(seed=key_act)
-        log_prob = dist.log_prob(action)
+        memory, action, log_prob, value = act(
+            network, net_params, runner.memory, runner.obs,
+            _split(jax.random.split(key_act, envs), data), cfg.train.blocks, data)
         active = jnp.any(runner.obs.mask, axis=-1)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
@@ -172,35 +197,58 @@ def gae(transitions: Transition, last_value, discount: float, lam: float):
     return advantages, advantages + transitions.value
 
 
-def loss_fn(net_params, network, batch: Transition, advantages, targets, cfg: PPOConfig):
+@struct.dataclass
+class AdvantageMoments:
+    """Over a minibatch's active samples: their count, the advantages' mean and std."""
+
+    count: jax.Array
+    mean: jax.Array
+    std: jax.Array
+
+
+def advantage_moments(weight, advantages, blocks: int, data: DataParallel | None = None):
+    """Two-pass moments of (E, ...) advantages weighted by `weight`, summed block by block."""
+    sums = lambda fn, shared: sum_blocks(fn, (weight, advantages), shared, blocks, data)
+    count, total = sums(lambda wa, _: (wa[0].sum(), (wa[0] * wa[1]).sum()), None)
+    count = jnp.maximum(count, 1.0)
+    mean = total / count
+    squares = sums(lambda wa, mean: (wa[0] * (wa[1] - mean) ** 2).sum(), mean)
+    return AdvantageMoments(count, mean, jnp.sqrt(squares / count) + 1e-8)
+
+
+def loss_fn(net_params, network, batch: Transition, advantages, targets,
+            moments: AdvantageMoments, cfg: PPOConfig):
+    """The clipped PPO loss of the samples in `batch` as their share of a minibatch's
+    loss (sums over `batch` divided by the minibatch's `moments.count`), so the shares of
+    a minibatch's blocks add up to its loss; returns (loss, its parts)."""
     _, logits, value = apply_batched(network, net_params, batch.memory, batch.obs)
     dist = distribution(logits, batch.obs.mask)
     log_prob = dist.log_prob(batch.action)
     weight = batch.active.astype(jnp.float32)
-    count = jnp.maximum(weight.sum(), 1.0)
-    mean = lambda x: (x * weight).sum() / count
-    adv_mean = mean(advantages)
-    adv_std = jnp.sqrt(mean((advantages - adv_mean) ** 2)) + 1e-8
-    adv = (advantages - adv_mean) / adv_std
+    share = lambda x: (x * weight).sum() / moments.count
+    adv = (advantages - moments.mean) / moments.std
     ratio = jnp.exp(log_prob - batch.log_prob)
     clipped = jnp.clip(ratio, 1.0 - cfg.clip, 1.0 + cfg.clip)
-    policy_loss = -mean(jnp.minimum(ratio * adv, clipped * adv))
+    policy_loss = -share(jnp.minimum(ratio * adv, clipped * adv))
     value_clipped = batch.value + jnp.clip(value - batch.value, -cfg.clip, cfg.clip)
-    value_loss = 0.5 * mean(jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2))
-    entropy = mean(dist.entropy())
+    value_loss = 0.5 * share(jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2))
+    entropy = share(dist.entropy())
     total = policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-    approx_kl = mean((ratio - 1.0) - jnp.log(ratio))
+    approx_kl = share((ratio - 1.0) - jnp.log(ratio))
     return total, dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
                        approx_kl=approx_kl)
 
 
 def update(key, net_params, opt_state, network, optimizer, transitions: Transition,
-           last_value, cfg: PPOConfig, data: DataParallel | None = None):
+           last_value, cfg: PPOConfig, blocks: int = 0, data: DataParallel | None = None):
     """Epochs x minibatches of whole environments; returns params, opt_state, losses."""
     advantages, targets = gae(transitions, last_value, cfg.discount, cfg.gae_lambda)
     envs = transitions.reward.shape[1]
     chex.assert_equal(envs % cfg.minibatches, 0)
-    grad_fn = jax.value_and_grad(loss_fn, has_aux=True)
+    grad_fn = jax.grad(loss_fn, has_aux=True)
+    # Environment-major (E, T, N, ...), so minibatches and their blocks are leading slices.
+    by_env = _split(jax.tree.map(lambda x: jnp.swapaxes(x, 0, 1),
+                                 (transitions, advantages, targets)), data)
 
     def epoch(carry, key):
         net_params, opt_state = carry
@@ -208,9 +256,11 @@ def update(key, net_params, opt_state, network, optimizer, transitions: Transiti
 
         def minibatch(carry, index):
             net_params, opt_state = carry
-            take = lambda x: _split(x[:, index], data, axis=1)
-            (_, aux), grads = grad_fn(net_params, network, jax.tree.map(take, transitions),
-                                      take(advantages), take(targets), cfg)
+            batch, adv, tgt = _split(jax.tree.map(lambda x: x[index], by_env), data)
+            moments = advantage_moments(batch.active.astype(jnp.float32), adv, blocks, data)
+            grads, aux = sum_blocks(
+                lambda b, shared: grad_fn(shared[0], network, *b, shared[1], cfg),
+                (batch, adv, tgt), (net_params, moments), blocks, data)
             updates, opt_state = optimizer.update(grads, opt_state, net_params)
             return (optax.apply_updates(net_params, updates), opt_state), aux
 

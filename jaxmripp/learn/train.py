@@ -89,10 +89,11 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
         runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
                                                  cfg, env_params, dyn, data)
-        _, _, last_value = ppo.apply_batched(network, state.params, runner.memory, runner.obs)
+        last_value = ppo.values(network, state.params, runner.memory, runner.obs,
+                                cfg.train.blocks, data)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
-                                               cfg.ppo, data)
+                                               cfg.ppo, cfg.train.blocks, data)
         active = transitions.active.astype(jnp.float32)
         metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
                        return_sum=stats.episode_return, reward_parts=stats.reward_parts,
@@ -150,6 +151,8 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
     trainer.data.check_divides(cfg.train.envs, "train.envs")
     trainer.data.check_divides(cfg.train.envs // cfg.ppo.minibatches,
                                "train.envs / ppo.minibatches (environments per minibatch)")
+    if cfg.train.blocks:
+        trainer.data.check_divides(cfg.train.blocks, "train.blocks")
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
     state = trainer.place(trainer.init())
     if resume and checkpoints.latest_step() is not None:
