@@ -5,8 +5,8 @@ every chunk boundary, so a checkpoint needs only the network, the optimiser stat
 seed key and the update counter, and a resumed run repeats an uninterrupted one exactly.
 Every random draw is keyed by `fold_in(seed key, update)`.
 
-The environments are split over every device of every process (`parallel.mesh`); the
-state is replicated. Process 0 alone writes config.yaml and metrics.jsonl and logs; every
+The environments are split over every device of every process (`parallel.mesh`) and
+computed in `train.blocks` blocks (`parallel.blocks`); the state is replicated. Process 0 alone writes config.yaml and metrics.jsonl and logs; every
 process takes part in the checkpoints, as orbax expects.
 """
 
