@@ -6,8 +6,9 @@ seed key and the update counter, and a resumed run repeats an uninterrupted one 
 Every random draw is keyed by `fold_in(seed key, update)`.
 
 The environments are split over every device of every process (`parallel.mesh`) and
-computed in `train.blocks` blocks (`parallel.blocks`); the state is replicated. Process 0 alone writes config.yaml and metrics.jsonl and logs; every
-process takes part in the checkpoints, as orbax expects.
+computed in `train.blocks` blocks (`parallel.blocks`); the state is replicated. Process
+0 alone writes config.yaml and metrics.jsonl and logs; every process takes part in the
+checkpoints, as orbax expects.
 """
 
 from __future__ import annotations
