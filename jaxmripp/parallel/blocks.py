@@ -26,6 +26,12 @@ from jax.sharding import PartitionSpec
 from jaxmripp.parallel.mesh import AXIS, DataParallel
 
 
+# Off: `fn` sees `shared` as a plain value of its device, so a gradient taken inside `fn`
+# is its block's own. With the check on, JAX marks `shared` as device-invariant and sums
+# such a gradient over the devices.
+_VMA_CHECK = False
+
+
 def blocks_per_device(blocks: int, data: DataParallel | None) -> int:
     """How many blocks each device computes in turn (`blocks = 0`: one)."""
     devices = 1 if data is None else data.devices
@@ -62,7 +68,7 @@ def map_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
     if data is None:
         return local(split, shared)
     return jax.shard_map(local, mesh=data.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
-                         out_specs=PartitionSpec(AXIS), check_vma=False)(split, shared)
+                         out_specs=PartitionSpec(AXIS), check_vma=_VMA_CHECK)(split, shared)
 
 
 def sum_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
@@ -86,6 +92,6 @@ def sum_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
     if data is None:
         return local(split, shared)
     # Every device adds the same gathered parts in the same order, so the result is
-    # replicated; the static replication check cannot see through all_gather.
+    # replicated (which the check could not see through all_gather anyway).
     return jax.shard_map(local, mesh=data.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
-                         out_specs=PartitionSpec(), check_vma=False)(split, shared)
+                         out_specs=PartitionSpec(), check_vma=_VMA_CHECK)(split, shared)
