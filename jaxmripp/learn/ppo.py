@@ -105,9 +105,10 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
     def block(inputs, params):
         memory, obs, keys = inputs
         memory, logits, value = apply_batched(network, params, memory, obs)
-        action = jax.vmap(lambda key, logits, mask: distribution(logits, mask).sample(
-            seed=key))(keys, logits, obs.mask)
-        return memory, action, distribution(logits, obs.mask).log_prob(action), value
+        dist = distribution(logits, obs.mask)
+        # One key per environment, so a draw does not depend on the block it falls in.
+        action = jax.vmap(jax.random.categorical)(keys, dist.logits)
+        return memory, action, dist.log_prob(action), value
 
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 

@@ -53,34 +53,42 @@ def _isolated(fn: Callable, block: Any, shared: Any) -> Any:
     return jax.lax.optimization_barrier(fn(block, shared))
 
 
+def _on_devices(local: Callable, split: Any, shared: Any, blocks: int,
+                data: DataParallel | None, out_spec: PartitionSpec) -> Any:
+    """local(split_blocks, shared) on every device, split_blocks being that device's part
+    of `split` cut into its (count, ...) blocks; without `data`, once on the whole batch."""
+
+    def cut(split, shared):
+        count = blocks_per_device(blocks, data)
+        return local(jax.tree.map(lambda x: _to_blocks(x, count), split), shared)
+
+    if data is None:
+        return cut(split, shared)
+    return jax.shard_map(cut, mesh=data.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
+                         out_specs=out_spec, check_vma=_VMA_CHECK)(split, shared)
+
+
 def map_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
                data: DataParallel | None) -> Any:
     """fn(split_block, shared) over the blocks of `split`'s leading axis; the outputs,
     batched along that axis, are joined in block order (and stay split over the
     devices)."""
 
-    def local(split, shared):
-        count = blocks_per_device(blocks, data)
-        out = jax.lax.map(lambda block: _isolated(fn, block, shared),
-                          jax.tree.map(lambda x: _to_blocks(x, count), split))
+    def local(split_blocks, shared):
+        out = jax.lax.map(lambda block: _isolated(fn, block, shared), split_blocks)
         return jax.tree.map(lambda x: x.reshape((-1,) + x.shape[2:]), out)
 
-    if data is None:
-        return local(split, shared)
-    return jax.shard_map(local, mesh=data.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
-                         out_specs=PartitionSpec(AXIS), check_vma=_VMA_CHECK)(split, shared)
+    return _on_devices(local, split, shared, blocks, data, PartitionSpec(AXIS))
 
 
 def sum_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
                data: DataParallel | None) -> Any:
     """The sum over the blocks of `split`'s leading axis of fn(split_block, shared),
     added in block order (the same on every device count dividing `blocks`); the result
-    is replicated."""
+    is replicated: every device adds the same gathered parts in the same order."""
 
-    def local(split, shared):
-        count = blocks_per_device(blocks, data)
-        parts = jax.lax.map(lambda block: _isolated(fn, block, shared),
-                            jax.tree.map(lambda x: _to_blocks(x, count), split))
+    def local(split_blocks, shared):
+        parts = jax.lax.map(lambda block: _isolated(fn, block, shared), split_blocks)
         if data is not None:
             parts = jax.lax.all_gather(parts, AXIS, tiled=True)
         first = jax.tree.map(lambda x: x[0], parts)
@@ -89,9 +97,4 @@ def sum_blocks(fn: Callable, split: Any, shared: Any, blocks: int,
                                 first, rest)
         return total
 
-    if data is None:
-        return local(split, shared)
-    # Every device adds the same gathered parts in the same order, so the result is
-    # replicated (which the check could not see through all_gather anyway).
-    return jax.shard_map(local, mesh=data.mesh, in_specs=(PartitionSpec(AXIS), PartitionSpec()),
-                         out_specs=PartitionSpec(), check_vma=_VMA_CHECK)(split, shared)
+    return _on_devices(local, split, shared, blocks, data, PartitionSpec())

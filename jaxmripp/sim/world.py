@@ -172,11 +172,12 @@ def _windows(key: chex.PRNGKey, origins: jax.Array, heights: jax.Array, cfg: Wor
     weight = jax.random.exponential(key_weight, heights.shape)
     z = jnp.arange(size)
     below_roof = z[None, :] < heights[:, None]  # (B, G)
-    slot = (jnp.ones((heights.shape[0], n_cols), bool) if sides is None
-            else _window_slots(sides, cfg))  # (B, P) columns that may hold windows
-    log_w = jnp.log(weight) - jnp.log((jnp.sum(slot, axis=1) * heights).astype(jnp.float32))
-    logits = jnp.where(below_roof[:, None, :] & slot[:, :, None], log_w[:, None, None],
-                       -jnp.inf).reshape(-1)
+    open_column = (jnp.ones((heights.shape[0], n_cols), bool) if sides is None
+                   else _window_slots(sides, cfg))  # (B, P) columns that may hold windows
+    log_w = jnp.log(weight) - jnp.log(
+        (jnp.sum(open_column, axis=1) * heights).astype(jnp.float32))
+    logits = jnp.where(below_roof[:, None, :] & open_column[:, :, None],
+                       log_w[:, None, None], -jnp.inf).reshape(-1)
     scores = logits + jax.random.gumbel(key_gumbel, logits.shape)
     _, slot = jax.lax.top_k(scores, capacity)  # best first; _check guarantees finite scores
     building, rest = jnp.divmod(slot, n_cols * size)
