@@ -37,7 +37,8 @@ def main(argv=None) -> int:
         say = print if is_main_process() else (lambda *_: None)
         say(f"run folder: {run_dir}")
         state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
-                               stop_after_chunks=args.stop_after_chunks, log=say)
+                               stop_after_chunks=args.stop_after_chunks, log=say,
+                               initial_params=pipeline.initial_params(cfg))
     except (cfgmod.ConfigError, launch.LaunchError, ShardingError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -125,9 +125,10 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
             "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
             "eval.pairs=[]", "eval.zip_with_size=[]", *overrides]
     exchanges = {
-        "global": [*cell, "eval.radio_ranges=[.inf]",
+        "global": [*cell, "eval.radio_ranges=[.inf]", "radio.relay=false",
                    "eval.planners=[policy, coordinated, nbv_team]"],
-        "single_hop": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]"],
+        "single_hop": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
+                       "radio.relay=false"],
         "relay": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
                   "radio.relay=true"],
     }

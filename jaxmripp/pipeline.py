@@ -10,23 +10,47 @@ import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
 from jaxmripp.evaluation.planners import baseline_planner, policy_planner
+from jaxmripp import config as cfgmod
 from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.runtime import weights as weights_format
 from jaxmripp.config import Config
 from jaxmripp.parallel.mesh import is_main_process
 
 
+def trained_params(source: str | Path, cfg: Config | None = None, best: bool = False):
+    """Network parameters of a training run (its last or best checkpoint, restored with
+    `cfg`, by default the run's config.yaml) or of an export (a folder with policy.npz,
+    e.g. pretrained/default)."""
+    source = Path(source)
+    if (source / "checkpoints").is_dir():
+        run_cfg = cfg if cfg is not None else cfgmod.load(source / "config.yaml")
+        return trainmod.restore(run_cfg, source, best=best).params
+    if (source / weights_format.WEIGHTS_FILE).is_file():
+        return policymod.unflatten_params(weights_format.load(source).weights)
+    raise cfgmod.ConfigError(
+        f"{str(source)!r}: not a training run (no checkpoints/) nor an export (no "
+        f"{weights_format.WEIGHTS_FILE}); allowed: a folder written by train.py or by "
+        "jaxmripp.export / jaxmripp.ship")
+
+
+def initial_params(cfg: Config):
+    """The parameters `train.init_from` names (None when it is empty), for
+    `jaxmripp.learn.train.train`."""
+    if not cfg.train.init_from:
+        return None
+    try:
+        return trained_params(cfg.train.init_from)
+    except cfgmod.ConfigError as err:
+        raise cfgmod.ConfigError(f"train.init_from: {err}") from None
+
+
 def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
     export (a folder with policy.npz, e.g. pretrained/default)."""
     trainer = trainmod.Trainer.build(cfg)
-    run_dir = Path(run_dir)
-    if not (run_dir / "checkpoints").is_dir() and (run_dir / weights_format.WEIGHTS_FILE).is_file():
-        exported = weights_format.load(run_dir)
-        return policy_planner(trainer.network, policymod.unflatten_params(exported.weights),
-                              cfg.policy.width)
-    state = trainmod.restore(cfg, run_dir, best=best)
-    return policy_planner(trainer.network, state.params, cfg.policy.width)
+    in_turn = (cfg.sensor, cfg.candidates.shell[1]) if cfg.policy.claims else None
+    return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
+                          cfg.policy.width, in_turn=in_turn)
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:

@@ -10,11 +10,13 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp import config as cfgmod
+from jaxmripp import config as cfgmod, export, pipeline
 from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
+from jaxmripp.sim import env as envmod
 from jaxmripp.sim.observation import Observation
+from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
 from jaxmripp.parallel.mesh import data_parallel
 
@@ -87,6 +89,59 @@ def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
         checkpoints.restore(template)
     checkpoints.close()
     assert "\n" not in str(err.value)
+
+
+def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, tmp_path):
+    run_dir, state = full_run
+    # Another team size: the attention policy's parameters do not depend on it.
+    three = cfgmod.load("configs/smoke.yaml", ["robots.count=3", "train.updates=0",
+                                               f"train.init_from={run_dir}"])
+    started = trainmod.train(three, tmp_path / "from_run", log=lambda _: None,
+                             initial_params=pipeline.initial_params(three))
+    assert int(started.update) == 0
+    assert _leaves_equal(started.params, state.params)
+    assert not _leaves_equal(started.params, trainmod.Trainer.build(three).init().params)
+    export.export(cfg, state.params, tmp_path / "export")
+    exported = pipeline.trained_params(tmp_path / "export")
+    assert _leaves_equal(trainmod.Trainer.build(three).init_from(exported, "export").params,
+                         state.params)
+    # Errors name the key: a source that is neither, another network, none passed.
+    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32", "train.updates=0"])
+    for problem in (lambda: pipeline.initial_params(cfgmod.from_dict(
+                        {"train": {"init_from": str(tmp_path / "nowhere")}}, wide)),
+                    lambda: trainmod.Trainer.build(wide).init_from(exported, "export"),
+                    lambda: trainmod.train(cfgmod.from_dict({"train": {"init_from": "x"}}, wide),
+                                           tmp_path / "none", log=lambda _: None)):
+        with pytest.raises(cfgmod.ConfigError) as err:
+            problem()
+        assert str(err.value).startswith("train.init_from: ") and "\n" not in str(err.value)
+
+
+def test_deciding_in_turn_records_the_observations_each_robot_decided_on(cfg, trainer):
+    """With policy.claims the rollout stores, for each robot, the observation it sampled
+    from: rescoring the stored observations gives back the sampled log-probabilities."""
+    envs, robots = cfg.train.envs, cfg.robots.count
+    keys = jax.random.split(jax.random.PRNGKey(5), envs)
+    obs, states = jax.vmap(envmod.reset, in_axes=(0, None, None))(
+        keys, trainer.env_params, DynamicParams.from_config(cfg))
+    # Every robot hears every other and has a copy of robot 0's map and candidates, so
+    # robot 1 sees robot 0's view claimed.
+    twin = lambda x: x.at[:, 1:].set(x[:, :1])  # noqa: E731
+    states = states.replace(heard=jnp.ones_like(states.heard), occupancy=twin(states.occupancy),
+                            building_top=twin(states.building_top),
+                            candidates=jax.tree.map(twin, states.candidates))
+    obs = jax.vmap(envmod.observe, in_axes=(0, None))(states, trainer.env_params)
+    params = trainer.init().params
+    memory = jnp.zeros((envs, robots, cfg.policy.width))
+    act = jax.jit(lambda obs, states: ppo.act_in_turn(
+        trainer.network, params, memory, obs, keys, states, cfg.sensor,
+        cfg.candidates.shell[1], cfg.train.blocks))
+    _, action, log_prob, _, decided = act(obs, states)
+    np.testing.assert_array_equal(decided.features[:, 0], obs.features[:, 0])
+    assert not np.array_equal(decided.features[:, 1], obs.features[:, 1])
+    _, logits, _ = ppo.apply_batched(trainer.network, params, memory, decided)
+    rescored = ppo.distribution(logits, decided.mask).log_prob(action)
+    np.testing.assert_allclose(rescored, log_prob, rtol=1e-5, atol=1e-5)
 
 
 def _random_observations(key, trainer, batch):

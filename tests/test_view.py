@@ -12,9 +12,10 @@ import pytest
 
 from jaxmripp.config import SensorConfig, from_dict
 from jaxmripp.evaluation import baselines
-from jaxmripp.sim import env, sensing, view
+from jaxmripp.sim import claims, env, sensing, view
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import view as spec
+from jaxmripp.spec.layout import FEATURES
 from jaxmripp.spec.grid import FREE, HEADING_VECTORS, OCCUPIED, UNKNOWN
 
 SENSOR = SensorConfig(range=0.3)
@@ -154,9 +155,9 @@ def test_peer_distance_caps_and_ignores_robots_not_heard():
     np.testing.assert_array_equal(far, spec.PEER_CAP)
 
 
-def test_nbv_team_robots_do_not_claim_the_same_view():
-    """Two robots at one spot with one map and one candidate set: the second never takes
-    the first one's pose (its view is claimed) while another pose has gain."""
+def _twins():
+    """A reset team whose robot 1 is a copy of robot 0: one spot, one map, one candidate
+    set (both hear each other)."""
     cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 6}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     _, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(0), params, dyn)
@@ -164,7 +165,39 @@ def test_nbv_team_robots_do_not_claim_the_same_view():
     state = state.replace(position=twin(state.position), heading=twin(state.heading),
                           occupancy=twin(state.occupancy), building_top=twin(state.building_top),
                           candidates=jax.tree.map(twin, state.candidates))
-    obs = jax.jit(env.observe, static_argnums=1)(state, params)
+    assert bool(state.heard[0, 1]) and bool(state.heard[1, 0])
+    return params, dyn, state, jax.jit(env.observe, static_argnums=1)(state, params)
+
+
+def test_deciding_in_turn_hides_exactly_the_views_peers_claimed():
+    params, _, state, obs = _twins()
+    column = {name: FEATURES.index(name) for name in FEATURES}
+    decide = lambda i, mine: (jnp.argmax(jnp.where(  # noqa: E731
+        mine.mask, mine.features[:, column["view_unknown_per_cost"]], -1.0)), None)
+    run = jax.jit(lambda obs, state: claims.in_turn(decide, obs, state, params.sensor,
+                                                    params.candidates.shell[1]))
+    decided, actions, _ = run(obs, state)
+    first = int(actions[0])
+    assert float(obs.features[1, first, column["view_unknown"]]) > 0
+    # Robot 0 decides on what observe wrote; robot 1, with robot 0's map, finds nothing
+    # left to see from robot 0's pose, and only the VIEW columns change.
+    np.testing.assert_array_equal(decided.features[0], obs.features[0])
+    for name in ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost"):
+        assert float(decided.features[1, first, column[name]]) == 0.0, name
+    others = [j for j in range(len(FEATURES)) if not FEATURES[j].startswith("view_")]
+    np.testing.assert_array_equal(decided.features[1][:, others], obs.features[1][:, others])
+    assert int(actions[1]) != first
+    # Robots that hear nobody decide on their own observations.
+    alone = state.replace(heard=jnp.eye(state.heard.shape[0], dtype=bool))
+    decided, actions, _ = run(obs, alone)
+    np.testing.assert_array_equal(decided.features, obs.features)
+    assert int(actions[0]) == int(actions[1])
+
+
+def test_nbv_team_robots_do_not_claim_the_same_view():
+    """Two robots at one spot with one map and one candidate set: the second never takes
+    the first one's pose (its view is claimed) while another pose has gain."""
+    params, dyn, state, obs = _twins()
     key = jax.random.PRNGKey(1)
     _, alone = jax.jit(baselines.nbv_planner().act)(key, None, obs)
     _, team = jax.jit(baselines.nbv_team_planner(params).act)(key, None, obs, state, dyn)

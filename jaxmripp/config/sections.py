@@ -123,6 +123,9 @@ class PolicyConfig:
     view_features: bool = True  # False: ablation without the view-gain inputs
     intent_features: bool = True  # False: ablation without the peer-distance input
     view_prior: float = 0.0  # > 0: next-best-view logit prior of this initial weight
+    # True: robots decide in turn and each sees its view gain without the views its peers
+    # just claimed (jaxmripp.sim.claims), as the nbv_team baseline does
+    claims: bool = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -153,6 +156,10 @@ class TrainConfig:
     # Environments are computed in this many equal blocks (0: one per device); every
     # device count dividing it trains to the same parameters (jaxmripp.parallel.blocks).
     blocks: int = 0
+    # Start from these parameters instead of random ones (a fresh optimiser, update 0): a
+    # training run's folder (its last checkpoint) or an export (policy.npz), e.g. to
+    # continue a policy trained with fewer robots. "" = random initialisation.
+    init_from: str = ""
     keep_checkpoints: int = 3
     eval_worlds: int = 100
     eval_budget: float = 10.0

@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import comms, geometry, gp, sensing, view
+from jaxmripp.sim import claims, comms, geometry, gp, sensing
 from jaxmripp.sim.episode import Planner
 from jaxmripp.spec import layout
 from jaxmripp.sim.observation import FEATURES, Observation
@@ -181,32 +181,18 @@ def nbv_planner(facade_weight: float = 1.0, name: str = "nbv") -> Planner:
 
 def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team") -> Planner:
     """Next-best view in turn: robots choose in index order; robot i scores its candidates
-    on its map with the voxels that robots j < i it hears will look at (the unknown samples
-    of their chosen poses) counted as seen, so the team spreads its views."""
+    on its map with the voxels that robots j < i it hears will look at counted as seen
+    (`jaxmripp.sim.claims`), so the team spreads its views."""
     shell = params.candidates.shell[1]
-    samples = view.samples_per_pose(params.sensor, params.size)
 
     def act(key, memory, obs, state, dyn):
-        n = obs.mask.shape[0]
-        c = state.candidates
         jitter = 1e-6 * jax.random.uniform(key, obs.mask.shape)
-        hears = comms.contacts(state.position, dyn.radio_range)
 
-        def choose(claimed, i):
-            mine = jnp.where(hears[i][:, None], claimed, params.size**3).reshape(-1)
-            occupancy = state.occupancy[i].reshape(-1).at[mine].set(
-                geometry.FREE, mode="drop").reshape(state.occupancy.shape[1:])
-            unknown, facade = view.view_gain(occupancy, state.building_top[i],
-                                             c.position[i, ::geometry.N_HEADINGS], params.sensor,
-                                             params.size)
-            gain = unknown.reshape(-1) + facade_weight * facade.reshape(-1)
-            a = masked_argmax(view.per_cost(gain, c.cost[i], shell) + jitter[i], obs.mask[i])
-            seen = view.unknown_in_view(occupancy, state.building_top[i], c.position[i, a],
-                                        c.heading[i, a], params.sensor, params.size)
-            seen = jnp.where(jnp.any(obs.mask[i]), seen, params.size**3)
-            return claimed.at[i].set(seen), a
+        def decide(i, mine):
+            score = nbv_scores(mine.features, facade_weight) + jitter[i]
+            return masked_argmax(score, mine.mask), None
 
-        init = jnp.full((n, samples), params.size**3, jnp.int32)
-        return memory, _sequential(choose, init, n)
+        _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell)
+        return memory, actions
 
     return Planner(name, _no_memory, act)

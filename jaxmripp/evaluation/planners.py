@@ -4,22 +4,34 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxmripp.config import Config
+from jaxmripp.config import Config, SensorConfig
 from jaxmripp.evaluation import baselines
+from jaxmripp.sim import claims
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.params import EnvParams
 
 
-def policy_planner(network, params, width: int, name: str = "policy") -> Planner:
-    """The trained policy at deployment: each robot takes its most probable candidate."""
+def policy_planner(network, params, width: int, name: str = "policy",
+                   in_turn: tuple[SensorConfig, float] | None = None) -> Planner:
+    """The trained policy at deployment: each robot takes its most probable candidate.
+    With `in_turn` = (sensor, shell[1]) (a policy trained with `policy.claims`) robots
+    decide in index order on the views their peers left unclaimed."""
     from jaxmripp.learn.ppo import apply_batched  # noqa: PLC0415 (ppo imports the env)
 
     def init(n_robots):
         return jnp.zeros((n_robots, width), jnp.float32)
 
     def act(key, memory, obs, state=None, dyn=None):
-        memory, logits, _ = apply_batched(network, params, memory, obs)
-        return memory, baselines.masked_argmax(logits, obs.mask)
+        if in_turn is None:
+            memory, logits, _ = apply_batched(network, params, memory, obs)
+            return memory, baselines.masked_argmax(logits, obs.mask)
+
+        def decide(i, mine):
+            new_memory, logits, _ = network.apply(params, memory[i], mine)
+            return baselines.masked_argmax(logits, mine.mask), new_memory
+
+        _, actions, memory = claims.in_turn(decide, obs, state, *in_turn)
+        return memory, actions
 
     return Planner(name, init, act)
 

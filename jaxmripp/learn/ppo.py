@@ -22,8 +22,8 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import env as envmod
-from jaxmripp.config import Config, PPOConfig
+from jaxmripp.sim import claims, env as envmod
+from jaxmripp.config import Config, PPOConfig, SensorConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
@@ -113,6 +113,31 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 
 
+def act_in_turn(network: ActorCritic, params, memory, obs: Observation, keys,
+                env_state: envmod.EnvState, sensor: SensorConfig, shell_outer: float,
+                blocks: int, data: DataParallel | None = None):
+    """`act` with the robots of each environment deciding in index order on the views
+    their peers left unclaimed (`jaxmripp.sim.claims`); robot i samples with
+    fold_in(its environment's key, i). Also returns the observations decided on (E, N, ...),
+    which are what the update must score."""
+
+    def one_environment(memory, obs, key, state, params):
+        def decide(i, mine):
+            new_memory, logits, value = network.apply(params, memory[i], mine)
+            dist = distribution(logits, mine.mask)
+            action = jax.random.categorical(jax.random.fold_in(key, i), dist.logits)
+            return action, (new_memory, dist.log_prob(action), value)
+
+        decided, action, (memory, log_prob, value) = claims.in_turn(decide, obs, state, sensor,
+                                                                    shell_outer)
+        return memory, action, log_prob, value, decided
+
+    def block(inputs, params):
+        return jax.vmap(one_environment, in_axes=(0, 0, 0, 0, None))(*inputs, params)
+
+    return map_blocks(block, (memory, obs, keys, env_state), params, blocks, data)
+
+
 def values(network: ActorCritic, params, memory, obs: Observation, blocks: int,
            data: DataParallel | None = None):
     """The critic's values (E, N), block by block like `act`."""
@@ -147,9 +172,15 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
     def body(carry, key):
         runner, pool_used = carry
         key_act, key_env = jax.random.split(key)
-        memory, action, log_prob, value = act(
-            network, net_params, runner.memory, runner.obs,
-            _split(jax.random.split(key_act, envs), data), cfg.train.blocks, data)
+        act_keys = _split(jax.random.split(key_act, envs), data)
+        if cfg.policy.claims:
+            memory, action, log_prob, value, decided = act_in_turn(
+                network, net_params, runner.memory, runner.obs, act_keys, runner.env_state,
+                params.sensor, params.candidates.shell[1], cfg.train.blocks, data)
+        else:
+            memory, action, log_prob, value = act(network, net_params, runner.memory,
+                                                  runner.obs, act_keys, cfg.train.blocks, data)
+            decided = runner.obs
         active = jnp.any(runner.obs.mask, axis=-1)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
@@ -165,7 +196,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
                                     info.reward_communication]).reshape(3, -1),
             acted=info.acted.reshape(-1))
         ret = jnp.where(ended[:, None], 0.0, ret)
-        transition = Transition(runner.obs, runner.memory, action, log_prob, value, reward,
+        transition = Transition(decided, runner.memory, action, log_prob, value, reward,
                                 terminal, active)
         return (_split(Runner(state, obs, memory, ret), data), pool_used), (transition, stats)
 

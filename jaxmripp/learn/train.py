@@ -83,6 +83,30 @@ class Trainer:
                                             Observation.zeros(self.env_params))
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32))
 
+    def init_from(self, params, source: str | Path) -> TrainState:
+        """`init` with the network parameters `params` (of `train.init_from` = `source`)
+        and an optimiser state made for them; raises ConfigError if their shapes differ."""
+        fresh = self.init()
+        want = jax.tree.map(lambda x: tuple(x.shape), fresh.params)
+        got = jax.tree.map(lambda x: tuple(x.shape), params)
+        if jax.tree.structure(want) != jax.tree.structure(got) or want != got:
+            raise cfgmod.ConfigError(
+                f"train.init_from: got {str(source)!r}, whose network differs from this "
+                f"config's ({_first_difference(want, got)}); allowed: a run or export with "
+                "the same policy width, heads, layers, ff_mult and critic")
+        params = jax.tree.map(lambda x, like: jnp.asarray(x, like.dtype), params, fresh.params)
+        return fresh.replace(params=params, opt_state=self.optimizer.init(params))
+
+
+def _first_difference(want, got) -> str:
+    flat_want = dict(jax.tree_util.tree_flatten_with_path(want)[0])
+    flat_got = dict(jax.tree_util.tree_flatten_with_path(got)[0])
+    for path in sorted(set(flat_want) | set(flat_got), key=str):
+        if flat_want.get(path) != flat_got.get(path):
+            return (f"{jax.tree_util.keystr(path)}: {flat_want.get(path, 'absent')} here, "
+                    f"{flat_got.get(path, 'absent')} there")
+    return "tree structure"
+
 
 def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: DataParallel):
     def one_update(dyn, carry, _):
@@ -140,11 +164,13 @@ def fresh_run_dir(root: Path, name: str) -> Path:
 
 
 def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: int | None = None,
-          log: Callable[[str], None] = print) -> TrainState:
+          log: Callable[[str], None] = print, initial_params: Any = None) -> TrainState:
     """Trains into run_dir (config.yaml, metrics.jsonl, checkpoints/); returns the state.
 
     A checkpoint restores onto whatever devices this run has (the state is replicated),
-    so a run may resume with another device or process count."""
+    so a run may resume with another device or process count. A new run with
+    `train.init_from` starts from `initial_params`, the parameters of that run or export
+    (`jaxmripp.pipeline.initial_params` reads them: exports are the runtime's format)."""
     main = is_main_process()
     log = log if main else (lambda _: None)
     run_dir.mkdir(parents=True, exist_ok=True)
@@ -155,13 +181,23 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
     if cfg.train.blocks:
         trainer.data.check_divides(cfg.train.blocks, "train.blocks")
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    state = trainer.place(trainer.init())
-    if resume and checkpoints.latest_step() is not None:
-        state = checkpoints.restore(state)
+    resuming = resume and checkpoints.latest_step() is not None
+    if resuming:
+        state = checkpoints.restore(trainer.place(trainer.init()))
         log(f"resumed {run_dir} at update {int(state.update)}")
-    elif main:
-        (run_dir / "config.yaml").write_text(cfgmod.to_yaml(cfg))
-        (run_dir / "metrics.jsonl").write_text("")
+    else:
+        if cfg.train.init_from and initial_params is None:
+            raise cfgmod.ConfigError(
+                f"train.init_from: got {cfg.train.init_from!r} but no initial_params; "
+                "allowed: its parameters passed as initial_params "
+                "(jaxmripp.pipeline.initial_params)")
+        state = trainer.place(trainer.init_from(initial_params, cfg.train.init_from)
+                              if cfg.train.init_from else trainer.init())
+        if cfg.train.init_from:
+            log(f"parameters from {cfg.train.init_from}")
+        if main:
+            (run_dir / "config.yaml").write_text(cfgmod.to_yaml(cfg))
+            (run_dir / "metrics.jsonl").write_text("")
     samples_per_update = cfg.train.envs * cfg.train.rollout_steps * cfg.robots.count
     total_chunks = cfg.train.updates // cfg.train.updates_per_chunk
     done_chunks = int(state.update) // cfg.train.updates_per_chunk

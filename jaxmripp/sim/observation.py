@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import geometry, gp, view
+from jaxmripp.config import SensorConfig
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.sim.types import EnvState, discovered_fraction
 
@@ -29,7 +30,7 @@ from jaxmripp.sim.types import EnvState, discovered_fraction
 # robot; x, y, z absolute position; one-hot heading; posterior mean and standard deviation
 # of the utility and communication GPs; path cost; budget left after the move.
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
-from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
+from jaxmripp.spec.layout import FEATURE_GROUPS, FEATURES, ROBOT_STATE
 
 N_FEATURES = len(FEATURES)  # F = 21
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9
@@ -58,6 +59,24 @@ class Observation:
                    global_state=jnp.zeros((global_state_size(params.n_robots),), jnp.float32))
 
 
+# The VIEW group's columns, in `view_columns`' order: one slice of FEATURES.
+_VIEW = [FEATURES.index(name) for name in FEATURE_GROUPS["view"]]
+assert _VIEW == list(range(_VIEW[0], _VIEW[0] + len(_VIEW))), "VIEW columns must be adjacent"
+VIEW_COLUMNS = slice(_VIEW[0], _VIEW[-1] + 1)
+
+
+def view_columns(occupancy: jax.Array, top: jax.Array, position: jax.Array, cost: jax.Array,
+                 sensor: SensorConfig, size: int, shell_outer: float) -> jax.Array:
+    """One robot's VIEW columns (view_unknown, view_facade and both per unit of cost),
+    (L, 4), for its map (G, G, G), building tops (G, G) and candidates: positions (L, 3),
+    which come in groups of the N_HEADINGS headings of one position, and costs (L,)."""
+    unknown, facade = view.view_gain(occupancy, top, position[::geometry.N_HEADINGS], sensor,
+                                     size)
+    unknown, facade = unknown.reshape(-1), facade.reshape(-1)
+    return jnp.stack([unknown, facade, view.per_cost(unknown, cost, shell_outer),
+                      view.per_cost(facade, cost, shell_outer)], axis=-1)
+
+
 def observe(state: EnvState, params: EnvParams) -> Observation:
     """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
 
@@ -74,11 +93,9 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
-    k = params.candidates.positions
-    unknown, facade = jax.vmap(view.view_gain, in_axes=(0, 0, 0, None, None))(
-        state.occupancy, state.building_top, c.position[:, ::geometry.N_HEADINGS],
-        params.sensor, params.size)
-    unknown, facade = unknown.reshape(n, 4 * k), facade.reshape(n, 4 * k)
+    gain_columns = jax.vmap(view_columns, in_axes=(0, 0, 0, 0, None, None, None))(
+        state.occupancy, state.building_top, c.position, c.cost, params.sensor, params.size,
+        shell)
     peers = jax.vmap(view.peer_distance, in_axes=(0, None, 0, None))(
         c.position, state.position, state.heard, shell)
     features = jnp.concatenate([
@@ -89,9 +106,7 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
         c_mean[..., None], jnp.sqrt(c_var)[..., None],
         c.cost[..., None],
         ((state.budget_left[:, None] - c.cost) / budget)[..., None],
-        unknown[..., None], facade[..., None],
-        view.per_cost(unknown, c.cost, shell)[..., None],
-        view.per_cost(facade, c.cost, shell)[..., None],
+        gain_columns,
         peers[..., None],
     ], axis=-1)
     robot_state = jnp.concatenate([
