@@ -118,8 +118,6 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
-    run_cfg = config.load(policy / "config.yaml")
-    planner = pipeline.trained_planner(run_cfg, policy)
     cell = [f"eval.team_sizes=[{', '.join(map(str, teams))}]", f"eval.world_sizes=[{size}]",
             "eval.budgets=[3.3333333]", "eval.budget_mode=per_robot", f"eval.worlds={worlds}",
             "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
@@ -135,6 +133,7 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
     found = {}
     for exchange, settings in exchanges.items():
         cfg = config.load(policy / "config.yaml", settings)
+        planner = pipeline.trained_planner(cfg, policy)  # relay as this exchange has it
         result = sweep.run_sweep(cfg, {"policy": planner}, time_planning=False,
                                  keep_pictures=False, log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:

@@ -44,11 +44,15 @@ def initial_params(cfg: Config):
         raise cfgmod.ConfigError(f"train.init_from: {err}") from None
 
 
-def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
+def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
+                    relay: bool | None = None):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
-    export (a folder with policy.npz, e.g. pretrained/default)."""
+    export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config. A
+    policy deciding in turn (`policy.claims`) hears claims as `relay` says (the sweep's
+    radio.relay; default the run's)."""
     trainer = trainmod.Trainer.build(cfg)
-    in_turn = (cfg.sensor, cfg.candidates.shell[1]) if cfg.policy.claims else None
+    relay = cfg.radio.relay if relay is None else relay
+    in_turn = (cfg.sensor, cfg.candidates.shell[1], relay) if cfg.policy.claims else None
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
                           cfg.policy.width, in_turn=in_turn)
 

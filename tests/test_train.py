@@ -134,8 +134,8 @@ def test_deciding_in_turn_records_the_observations_each_robot_decided_on(cfg, tr
     params = trainer.init().params
     memory = jnp.zeros((envs, robots, cfg.policy.width))
     act = jax.jit(lambda obs, states: ppo.act_in_turn(
-        trainer.network, params, memory, obs, keys, states, cfg.sensor,
-        cfg.candidates.shell[1], cfg.train.blocks))
+        trainer.network, params, memory, obs, keys, states, trainer.env_params,
+        cfg.train.blocks))
     _, action, log_prob, _, decided = act(obs, states)
     np.testing.assert_array_equal(decided.features[:, 0], obs.features[:, 0])
     assert not np.array_equal(decided.features[:, 1], obs.features[:, 1])

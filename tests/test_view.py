@@ -194,6 +194,28 @@ def test_deciding_in_turn_hides_exactly_the_views_peers_claimed():
     assert int(actions[0]) == int(actions[1])
 
 
+def test_with_relay_a_robot_hears_the_claims_of_its_whole_component():
+    """Three copies of one robot in a chain (0 - 1 - 2): robot 2 sees robot 0's view
+    claimed only when claims are relayed."""
+    params, _, state, obs = _twins()
+    triple = lambda x: x.at[2].set(x[0])  # noqa: E731
+    chain = jnp.asarray([[1, 1, 0], [1, 1, 1], [0, 1, 1]], bool)
+    state = state.replace(position=triple(state.position), heading=triple(state.heading),
+                          occupancy=triple(state.occupancy),
+                          building_top=triple(state.building_top),
+                          candidates=jax.tree.map(triple, state.candidates), heard=chain)
+    obs = jax.jit(env.observe, static_argnums=1)(state, params)
+    unknown = FEATURES.index("view_unknown")
+    decide = lambda i, mine: (jnp.argmax(jnp.where(  # noqa: E731
+        mine.mask, mine.features[:, FEATURES.index("view_unknown_per_cost")], -1.0)), None)
+    left = {}
+    for relay in (False, True):
+        decided, actions, _ = jax.jit(lambda obs, state: claims.in_turn(
+            decide, obs, state, params.sensor, params.candidates.shell[1], relay))(obs, state)
+        left[relay] = float(decided.features[2, int(actions[0]), unknown])
+    assert left[True] == 0.0 < left[False]
+
+
 def test_nbv_team_robots_do_not_claim_the_same_view():
     """Two robots at one spot with one map and one candidate set: the second never takes
     the first one's pose (its view is claimed) while another pose has gain."""

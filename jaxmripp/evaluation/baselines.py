@@ -192,7 +192,8 @@ def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team")
             score = nbv_scores(mine.features, facade_weight) + jitter[i]
             return masked_argmax(score, mine.mask), None
 
-        _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell)
+        _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell,
+                                       params.radio.relay)
         return memory, actions
 
     return Planner(name, _no_memory, act)

@@ -12,10 +12,10 @@ from jaxmripp.sim.params import EnvParams
 
 
 def policy_planner(network, params, width: int, name: str = "policy",
-                   in_turn: tuple[SensorConfig, float] | None = None) -> Planner:
+                   in_turn: tuple[SensorConfig, float, bool] | None = None) -> Planner:
     """The trained policy at deployment: each robot takes its most probable candidate.
-    With `in_turn` = (sensor, shell[1]) (a policy trained with `policy.claims`) robots
-    decide in index order on the views their peers left unclaimed."""
+    With `in_turn` = (sensor, shell[1], relay) (a policy trained with `policy.claims`)
+    robots decide in index order on the views their peers left unclaimed."""
     from jaxmripp.learn.ppo import apply_batched  # noqa: PLC0415 (ppo imports the env)
 
     def init(n_robots):

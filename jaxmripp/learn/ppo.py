@@ -23,7 +23,7 @@ import optax
 from flax import struct
 
 from jaxmripp.sim import claims, env as envmod
-from jaxmripp.config import Config, PPOConfig, SensorConfig
+from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
@@ -114,8 +114,8 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
 
 
 def act_in_turn(network: ActorCritic, params, memory, obs: Observation, keys,
-                env_state: envmod.EnvState, sensor: SensorConfig, shell_outer: float,
-                blocks: int, data: DataParallel | None = None):
+                env_state: envmod.EnvState, env_params: EnvParams, blocks: int,
+                data: DataParallel | None = None):
     """`act` with the robots of each environment deciding in index order on the views
     their peers left unclaimed (`jaxmripp.sim.claims`); robot i samples with
     fold_in(its environment's key, i). Also returns the observations decided on (E, N, ...),
@@ -128,8 +128,9 @@ def act_in_turn(network: ActorCritic, params, memory, obs: Observation, keys,
             action = jax.random.categorical(jax.random.fold_in(key, i), dist.logits)
             return action, (new_memory, dist.log_prob(action), value)
 
-        decided, action, (memory, log_prob, value) = claims.in_turn(decide, obs, state, sensor,
-                                                                    shell_outer)
+        decided, action, (memory, log_prob, value) = claims.in_turn(
+            decide, obs, state, env_params.sensor, env_params.candidates.shell[1],
+            env_params.radio.relay)
         return memory, action, log_prob, value, decided
 
     def block(inputs, params):
@@ -176,7 +177,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         if cfg.policy.claims:
             memory, action, log_prob, value, decided = act_in_turn(
                 network, net_params, runner.memory, runner.obs, act_keys, runner.env_state,
-                params.sensor, params.candidates.shell[1], cfg.train.blocks, data)
+                params, cfg.train.blocks, data)
         else:
             memory, action, log_prob, value = act(network, net_params, runner.memory,
                                                   runner.obs, act_keys, cfg.train.blocks, data)

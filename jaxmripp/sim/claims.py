@@ -20,7 +20,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.config import SensorConfig
-from jaxmripp.sim import geometry, view
+from jaxmripp.sim import comms, geometry, view
 from jaxmripp.sim.observation import VIEW_COLUMNS, Observation, view_columns
 from jaxmripp.sim.types import EnvState
 
@@ -29,16 +29,18 @@ Decide = Callable[[jax.Array, Observation], tuple[jax.Array, Any]]
 
 
 def in_turn(decide: Decide, obs: Observation, state: EnvState, sensor: SensorConfig,
-            shell_outer: float) -> tuple[Observation, jax.Array, Any]:
+            shell_outer: float, relay: bool = False) -> tuple[Observation, jax.Array, Any]:
     """Runs `decide` robot by robot on observations (N, ...) of `state`; returns the
     observations the robots decided on (N, ...), their actions (N,) and the stacked
-    extra outputs (N, ...)."""
+    extra outputs (N, ...). A robot hears the choices of the robots in radio range this
+    round, or with `relay` of its whole connected component (`comms.links`)."""
     n, size = obs.mask.shape[0], state.occupancy.shape[-1]
     c = state.candidates
     outside = size**3  # an index past the map: scatters drop it
+    hears = comms.links(state.heard, relay)
 
     def choose(claimed, i):
-        heard = jnp.where(state.heard[i][:, None], claimed, outside).reshape(-1)
+        heard = jnp.where(hears[i][:, None], claimed, outside).reshape(-1)
         occupancy = state.occupancy[i].reshape(-1).at[heard].set(
             geometry.FREE, mode="drop").reshape(state.occupancy.shape[1:])
         columns = view_columns(occupancy, state.building_top[i], c.position[i], c.cost[i],

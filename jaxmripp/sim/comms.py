@@ -70,6 +70,12 @@ def _max_update(know: jax.Array, links: jax.Array, shared: jax.Array) -> jax.Arr
     return jax.lax.fori_loop(0, know.shape[0], hear, know)
 
 
+def links(contact: jax.Array, relay: bool) -> jax.Array:
+    """(N, N) bool contacts -> who hears whom within one round: the contacts themselves
+    (single hop) or, with relay, every robot of the same connected component."""
+    return _reachable(contact) if relay else contact
+
+
 def _reachable(contact: jax.Array) -> jax.Array:
     """(N, N) bool links -> (N, N) bool, True where j is reachable from i (i included).
 
@@ -95,11 +101,11 @@ def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
     """
     n = occupancy.shape[0]
     chex.assert_shape(contact, (n, n))
-    links = _reachable(contact) if relay else contact
+    linked = links(contact, relay)
 
     def hear(k, maps):
         merged, merged_tops = maps
-        heard = links[:, k]
+        heard = linked[:, k]
         merged = jnp.where(heard[:, None, None, None] & (merged == UNKNOWN), occupancy[k][None],
                            merged)
         merged_tops = jnp.where(heard[:, None, None], jnp.maximum(merged_tops, tops[k][None]),
