@@ -19,6 +19,7 @@ from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
 from jaxmripp.parallel.mesh import data_parallel
+from jaxmripp.spec import layout
 
 @pytest.fixture(scope="module")
 def cfg():
@@ -186,6 +187,46 @@ def test_ppo_loss_falls_on_a_fixed_batch(algo):
         params, opt_state, _ = update(jax.random.PRNGKey(10 + i), params, opt_state)
         losses.append(float(loss(params)))
     assert losses[-1] < losses[0]
+
+
+def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
+    """`imitation` is -log pi(nbv choice) averaged over active samples, checked against a
+    NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
+    add nothing (and no NaN)."""
+    facade, coef = 2.0, 0.7
+    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}"])
+    trainer = trainmod.Trainer.build(cfgmod.load("configs/smoke.yaml"))
+    params = trainer.init().params
+    envs, robots = cfg.train.envs, cfg.robots.count
+    obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
+    obs = obs.replace(mask=obs.mask.at[0, 0, 0].set(False))  # env 0, robot 0: no choice
+    memory = jnp.zeros((1, envs, robots, cfg.policy.width))
+    _, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
+    active = jnp.any(obs.mask, axis=-1)
+    zeros = jnp.zeros(value.shape)
+    batch = ppo.Transition(obs=obs, memory=memory, action=jnp.zeros(value.shape, jnp.int32),
+                           log_prob=zeros, value=value, reward=zeros,
+                           terminal=jnp.ones(value.shape, bool), active=active)
+    moments = ppo.advantage_moments(active.astype(jnp.float32), zeros, blocks=0)
+    loss = lambda c: ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,  # noqa: E731
+                                 c.ppo, teacher_facade=facade)
+    total, parts = loss(cfg)
+    plain, _ = loss(cfgmod.load("configs/smoke.yaml"))
+
+    f, m, z = (np.asarray(x, np.float64) for x in (obs.features, obs.mask, logits))
+    names = list(layout.FEATURES)
+    score = f[..., names.index("view_unknown_per_cost")] \
+        + facade * f[..., names.index("view_facade_per_cost")]
+    choice = np.where(m > 0, score, -np.inf).argmax(axis=-1)
+    act = np.asarray(active)
+    z = np.where(m[act] > 0, z[act], -np.inf)
+    log_softmax = z - z.max(-1, keepdims=True)
+    log_softmax -= np.log(np.exp(log_softmax).sum(-1, keepdims=True))
+    picked = np.take_along_axis(log_softmax, choice[act][..., None], -1)[..., 0]
+    assert not act[0, 0, 0] and act.sum() == act.size - 1
+    expected = -picked.mean()
+    np.testing.assert_allclose(float(parts["imitation"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
 
 
 def test_gae_matches_a_hand_computed_example():

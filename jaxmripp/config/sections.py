@@ -142,6 +142,10 @@ class PPOConfig:
     entropy_coef: float = 0.01
     value_coef: float = 0.5
     max_grad_norm: float = 0.5
+    # > 0: kickstarting: the loss adds this weight x the cross-entropy from the
+    # next-best-view choice (jaxmripp.spec.layout.nbv_score with eval.nbv_team_facade) on
+    # the observation each robot decided on: nbv_team's choice with policy.claims
+    teacher_coef: float = 0.0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -32,7 +32,7 @@ def _no_memory(n_robots: int) -> jax.Array:
 
 def masked_argmax(scores: jax.Array, mask: jax.Array) -> jax.Array:
     """Argmax over feasible entries of the last axis; 0 where nothing is feasible."""
-    return jnp.argmax(jnp.where(mask, scores, -jnp.inf), axis=-1)
+    return layout.masked_argmax(scores, mask, jnp)
 
 
 def random_planner() -> Planner:

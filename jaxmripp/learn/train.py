@@ -118,7 +118,8 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
                                 cfg.train.blocks, data)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
-                                               cfg.ppo, cfg.train.blocks, data)
+                                               cfg.ppo, cfg.train.blocks, data,
+                                               cfg.eval.nbv_team_facade)
         active = transitions.active.astype(jnp.float32)
         metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
                        return_sum=stats.episode_return, reward_parts=stats.reward_parts,
@@ -148,6 +149,7 @@ def summarise(metrics: dict, cfg: Config) -> dict:
         "value_loss": float(m["value_loss"].mean()),
         "entropy": float(m["entropy"].mean()),
         "approx_kl": float(m["approx_kl"].mean()),
+        "imitation": float(m["imitation"].mean()),
         "r_exploration": float(parts[0]),
         "r_discovery": float(parts[1]),
         "r_communication": float(parts[2]),

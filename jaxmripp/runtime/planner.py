@@ -261,7 +261,7 @@ class OnboardPlanner(RadioExchange):
                       safety.hover_reason(c, why, stats, self.budget_left, self.spec))
             decision = self._hover(mode, reason, scores, mask, safe, features, robot_state, c)
         else:
-            index = int(np.argmax(np.where(mask, scores, -np.inf)))
+            index = int(layout.masked_argmax(scores, mask))
             position, heading = c.position[index], int(c.heading[index])
             self._command = (self.position.copy(), position.copy())
             decision = Decision(

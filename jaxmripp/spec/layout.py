@@ -85,6 +85,12 @@ def nbv_score(features, facade_weight: float):
         + facade_weight * features[..., FEATURES.index("view_facade_per_cost")]
 
 
+def masked_argmax(scores, mask, xp=np):
+    """Argmax over the feasible entries of the last axis (the first of equal maxima); 0
+    where nothing is feasible. `xp` is numpy or jax.numpy."""
+    return xp.argmax(xp.where(mask, scores, -xp.inf), axis=-1)
+
+
 def input_keep(comm: bool = True, view: bool = True, intent: bool = True) -> np.ndarray:
     """(F,) float32 1/0 multipliers of the FEATURES columns: 0 for an ablated group."""
     dropped = set()
