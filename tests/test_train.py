@@ -192,7 +192,7 @@ def test_ppo_loss_falls_on_a_fixed_batch(algo):
 def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     """`imitation` is -log pi(nbv choice) averaged over active samples, checked against a
     NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
-    add nothing (and no NaN)."""
+    add nothing (and no NaN). The weight falls linearly to 0 over ppo.teacher_updates."""
     facade, coef = 2.0, 0.7
     cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}"])
     trainer = trainmod.Trainer.build(cfgmod.load("configs/smoke.yaml"))
@@ -208,10 +208,10 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
                            log_prob=zeros, value=value, reward=zeros,
                            terminal=jnp.ones(value.shape, bool), active=active)
     moments = ppo.advantage_moments(active.astype(jnp.float32), zeros, blocks=0)
-    loss = lambda c: ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,  # noqa: E731
-                                 c.ppo, teacher_facade=facade)
-    total, parts = loss(cfg)
-    plain, _ = loss(cfgmod.load("configs/smoke.yaml"))
+    loss = lambda teacher: ppo.loss_fn(params, trainer.network, batch, zeros,  # noqa: E731
+                                       value, moments, cfg.ppo, teacher)
+    total, parts = loss(ppo.Teacher.at(cfg.ppo, 0, facade))
+    plain, _ = loss(ppo.NO_TEACHER)
 
     f, m, z = (np.asarray(x, np.float64) for x in (obs.features, obs.mask, logits))
     names = list(layout.FEATURES)
@@ -227,6 +227,12 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     expected = -picked.mean()
     np.testing.assert_allclose(float(parts["imitation"]), expected, rtol=1e-4)
     np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
+
+    decaying = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
+                                                  "ppo.teacher_updates=8"]).ppo
+    weights = [float(ppo.Teacher.at(decaying, u, facade).weight) for u in (0, 2, 8, 20)]
+    np.testing.assert_allclose(weights, [coef, 0.75 * coef, 0.0, 0.0], rtol=1e-6)
+    assert float(ppo.Teacher.at(cfg.ppo, 20, facade).weight) == np.float32(coef)
 
 
 def test_gae_matches_a_hand_computed_example():

@@ -108,6 +108,7 @@ RULES: dict[str, tuple] = {
     "ppo.value_coef": _NONNEG,
     "ppo.max_grad_norm": _POSITIVE,
     "ppo.teacher_coef": _NONNEG,
+    "ppo.teacher_updates": _NONNEG,
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),

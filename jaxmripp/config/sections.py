@@ -146,6 +146,7 @@ class PPOConfig:
     # next-best-view choice (jaxmripp.spec.layout.nbv_score with eval.nbv_team_facade) on
     # the observation each robot decided on: nbv_team's choice with policy.claims
     teacher_coef: float = 0.0
+    teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
 
 
 @dataclasses.dataclass(frozen=True)

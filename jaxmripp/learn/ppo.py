@@ -250,13 +250,33 @@ def advantage_moments(weight, advantages, blocks: int, data: DataParallel | None
     return AdvantageMoments(count, mean, jnp.sqrt(squares / count) + 1e-8)
 
 
+@struct.dataclass
+class Teacher:
+    """Kickstarting: the loss adds `weight` x the cross-entropy from the next-best-view
+    choice (`layout.nbv_score` with facade weight `facade`) on each decided observation."""
+
+    weight: jax.Array  # () float32, this update's weight
+    facade: float = struct.field(pytree_node=False, default=0.0)
+
+    @classmethod
+    def at(cls, cfg: PPOConfig, update, facade: float) -> "Teacher":
+        """The weight at `update` (updates done): `cfg.teacher_coef`, falling linearly to 0
+        over the first `cfg.teacher_updates` updates when that is > 0."""
+        weight = jnp.float32(cfg.teacher_coef)
+        if cfg.teacher_updates:
+            weight = weight * jnp.clip(1.0 - update / cfg.teacher_updates, 0.0, 1.0)
+        return cls(weight, facade)
+
+
+NO_TEACHER = Teacher(jnp.zeros((), jnp.float32))
+
+
 def loss_fn(net_params, network, batch: Transition, advantages, targets,
-            moments: AdvantageMoments, cfg: PPOConfig, teacher_facade: float = 0.0):
+            moments: AdvantageMoments, cfg: PPOConfig, teacher: Teacher = NO_TEACHER):
     """The clipped PPO loss of the samples in `batch` as their share of a minibatch's
     loss (sums over `batch` divided by the minibatch's `moments.count`), so the shares of
     a minibatch's blocks add up to its loss; returns (loss, its parts). The part
-    `imitation` is the cross-entropy from the next-best-view choice (facade weight
-    `teacher_facade`), in the loss x `cfg.teacher_coef`."""
+    `imitation` is `teacher`'s cross-entropy, in the loss x `teacher.weight`."""
     _, logits, value = apply_batched(network, net_params, batch.memory, batch.obs)
     dist = distribution(logits, batch.obs.mask)
     log_prob = dist.log_prob(batch.action)
@@ -269,11 +289,11 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     value_clipped = batch.value + jnp.clip(value - batch.value, -cfg.clip, cfg.clip)
     value_loss = 0.5 * share(jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2))
     entropy = share(dist.entropy())
-    choice = layout.masked_argmax(layout.nbv_score(batch.obs.features, teacher_facade),
+    choice = layout.masked_argmax(layout.nbv_score(batch.obs.features, teacher.facade),
                                   batch.obs.mask, jnp)
     imitation = -share(jnp.where(jnp.any(batch.obs.mask, axis=-1), dist.log_prob(choice), 0.0))
     total = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
-             + cfg.teacher_coef * imitation)
+             + teacher.weight * imitation)
     approx_kl = share((ratio - 1.0) - jnp.log(ratio))
     return total, dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
                        approx_kl=approx_kl, imitation=imitation)
@@ -281,9 +301,9 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
 
 def update(key, net_params, opt_state, network, optimizer, transitions: Transition,
            last_value, cfg: PPOConfig, blocks: int = 0, data: DataParallel | None = None,
-           teacher_facade: float = 0.0):
+           teacher: Teacher = NO_TEACHER):
     """Epochs x minibatches of whole environments; returns params, opt_state, losses
-    (`teacher_facade`: see `loss_fn`)."""
+    (`teacher`: see `loss_fn`)."""
     advantages, targets = gae(transitions, last_value, cfg.discount, cfg.gae_lambda)
     envs = transitions.reward.shape[1]
     chex.assert_equal(envs % cfg.minibatches, 0)
@@ -301,7 +321,7 @@ def update(key, net_params, opt_state, network, optimizer, transitions: Transiti
             batch, adv, tgt = _split(jax.tree.map(lambda x: x[index], by_env), data)
             moments = advantage_moments(batch.active.astype(jnp.float32), adv, blocks, data)
             grads, aux = sum_blocks(
-                lambda b, shared: grad_fn(shared[0], network, *b, shared[1], cfg, teacher_facade),
+                lambda b, shared: grad_fn(shared[0], network, *b, shared[1], cfg, teacher),
                 (batch, adv, tgt), (net_params, moments), blocks, data)
             updates, opt_state = optimizer.update(grads, opt_state, net_params)
             return (optax.apply_updates(net_params, updates), opt_state), aux

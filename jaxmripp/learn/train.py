@@ -119,7 +119,8 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
                                                cfg.ppo, cfg.train.blocks, data,
-                                               cfg.eval.nbv_team_facade)
+                                               ppo.Teacher.at(cfg.ppo, state.update,
+                                                              cfg.eval.nbv_team_facade))
         active = transitions.active.astype(jnp.float32)
         metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
                        return_sum=stats.episode_return, reward_parts=stats.reward_parts,
