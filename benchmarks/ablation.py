@@ -26,8 +26,9 @@ Usage (from the repository root):
         [--variants full,no_comm,...] [--worlds 25] [--trials 10] [--runs runs/ablation]
         [--out docs/results/ablation_default.md]
 Preset `default` trains configs/default.yaml (the `make train` job) and evaluates with
-configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml for --updates
-(default 60) and evaluates with configs/eval_paper_world.yaml.
+configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml without its
+kickstarting teacher (ppo.teacher_coef=0) for --updates (default 60) and evaluates with
+configs/eval_paper_world.yaml.
 """
 
 from __future__ import annotations
@@ -59,9 +60,13 @@ VARIANTS = {
 # Sections that only shape training; an override elsewhere changes the environment, so the
 # variant is evaluated with it too.
 TRAINING_SECTIONS = ("policy", "reward", "ppo", "train")
-PRESETS = {  # preset: (training config, evaluation config, default number of updates)
-    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None),
-    "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60),
+# preset: (training config, evaluation config, default number of updates, overrides). The
+# variants compare what PPO learns from each input, so no kickstarting teacher pulls them
+# toward the next-best-view rule.
+PRESETS = {
+    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, ()),
+    "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60,
+              ("ppo.teacher_coef=0",)),
 }
 
 
@@ -107,9 +112,9 @@ def parse_args(argv):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    train_path, eval_path, preset_updates = PRESETS[args.preset]
+    train_path, eval_path, preset_updates, preset_overrides = PRESETS[args.preset]
     updates = args.updates or preset_updates
-    common = [f"train.updates={updates}"] if updates else []
+    common = [*preset_overrides, *([f"train.updates={updates}"] if updates else [])]
     try:
         runs = {(variant, seed): cfgmod.load(train_path, [
             *common, *VARIANTS[variant], f"train.seed={seed}",

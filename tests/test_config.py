@@ -77,6 +77,13 @@ def test_view_prior_needs_the_view_features():
     assert cfgmod.load(None, ["policy.view_prior=2"]).policy.view_prior == 2.0
 
 
+def test_kickstarting_needs_the_view_features():
+    with pytest.raises(ConfigError, match="ppo.teacher_coef: got 1.0; allowed: 0 while"):
+        cfgmod.load(None, ["ppo.teacher_coef=1", "policy.view_features=false"])
+    with pytest.raises(ConfigError, match="ppo.teacher_updates: got -1"):
+        cfgmod.load(None, ["ppo.teacher_updates=-1"])
+
+
 def test_near_miss_key_suggests_the_right_name():
     with pytest.raises(ConfigError, match="did you mean 'world.size'"):
         cfgmod.load(None, ["world.sise=50"])
