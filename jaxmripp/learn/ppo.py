@@ -255,7 +255,7 @@ class Teacher:
     """Kickstarting: the loss adds `weight` x the cross-entropy from the next-best-view
     choice (`layout.nbv_score` with facade weight `facade`) on each decided observation."""
 
-    weight: jax.Array  # () float32, this update's weight
+    weight: jax.Array | float  # () float32, this update's weight
     facade: float = struct.field(pytree_node=False, default=0.0)
 
     @classmethod
@@ -268,7 +268,7 @@ class Teacher:
         return cls(weight, facade)
 
 
-NO_TEACHER = Teacher(jnp.zeros((), jnp.float32))
+NO_TEACHER = Teacher(0.0)  # a Python float: importing this module must not start JAX
 
 
 def loss_fn(net_params, network, batch: Transition, advantages, targets,
