@@ -45,16 +45,16 @@ def initial_params(cfg: Config):
 
 
 def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
-                    relay: bool | None = None):
+                    relay: bool | None = None, sectors: bool = False):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
     export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config. A
     policy deciding in turn (`policy.claims`) hears claims as `relay` says (the sweep's
-    radio.relay; default the run's)."""
+    radio.relay; default the run's); `sectors` applies the sector rule (`eval.sectors`)."""
     trainer = trainmod.Trainer.build(cfg)
     relay = cfg.radio.relay if relay is None else relay
     in_turn = (cfg.sensor, cfg.candidates.shell[1], relay) if cfg.policy.claims else None
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
-                          cfg.policy.width, in_turn=in_turn)
+                          cfg.policy.width, in_turn=in_turn, sectors=sectors)
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:

@@ -1,0 +1,45 @@
+"""Sectors: a division of the world among the team that needs no radio.
+
+Seen from the first take-off pad `start` (on the world's boundary, as the pads are:
+`jaxmripp.spec.flight`), the ground azimuths of the unit square span [lo, hi] (the
+extremes over its four corners; [0, pi/2] from a corner). Robot i of a team of N owns
+the sector of azimuths [lo + i (hi - lo) / N, lo + (i + 1) (hi - lo) / N), the last one
+closed. A robot is offered only the candidates in its own sector that have unknown
+voxels in view (view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its
+sector offers none, its whole mask. Robots that rarely hear each other (a short radio
+range) thus still look at different parts of the world until their own part is seen.
+
+Plain indexing and arithmetic with `xp` (numpy or jax.numpy), so both sides share it.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from jaxmripp.spec.layout import FEATURES
+
+GAIN_COLUMN = FEATURES.index("view_unknown")
+
+
+def own_sector(position, start, robot, team: int, xp=np):
+    """Candidate positions (..., 3), the first pad (3,), robot index (broadcasts against
+    the leading axes) -> (...,) bool: the candidate lies in the robot's sector."""
+    corners = xp.asarray([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], xp.float32)
+    offset = corners - start[:2]
+    # A corner at the pad itself has no azimuth: it must not widen the span.
+    away = xp.sum(offset * offset, axis=-1) > 0
+    corner_azimuth = xp.arctan2(offset[:, 1], offset[:, 0])
+    lo = xp.min(xp.where(away, corner_azimuth, xp.inf))
+    hi = xp.max(xp.where(away, corner_azimuth, -xp.inf))
+    azimuth = xp.arctan2(position[..., 1] - start[1], position[..., 0] - start[0])
+    share = xp.floor((azimuth - lo) / (hi - lo) * team)
+    sector = xp.clip(share, 0, team - 1)
+    return sector == robot
+
+
+def sector_mask(mask, features, own):
+    """(..., L) mask, (..., L, F) features, (..., L) `own_sector` -> (..., L) the mask
+    the robot is offered."""
+    useful = mask & own & (features[..., GAIN_COLUMN] > 0)
+    keep = useful.any(axis=-1)[..., None]
+    return (useful & keep) | (mask & ~keep)
