@@ -66,8 +66,7 @@ def main(argv=None) -> int:
         for note in sweep.policy_mismatches(run_cfg, cfg):
             say(f"note: {name} was trained with {note}")
         planners[name] = pipeline.trained_planner(run_cfg, run_dir, best=args.best,
-                                                  relay=cfg.radio.relay,
-                                                  sectors=cfg.eval.sectors)._replace(name=name)
+                                                  sweep=cfg)._replace(name=name)
         say(f"policy {name}: {run_dir}")
     out = Path(args.out) if args.out else (
         policies[0][1] / "eval" if policies else Path("runs") / Path(args.config).stem / "eval")

@@ -80,7 +80,7 @@ def main(argv=None) -> int:
         run_cfg = cfgmod.load(policy / "config.yaml")
         for note in sweep.policy_mismatches(run_cfg, cfg):
             print(f"note: the policy was trained with {note}", file=sys.stderr)
-        policies["policy"] = pipeline.trained_planner(run_cfg, policy, sectors=cfg.eval.sectors)
+        policies["policy"] = pipeline.trained_planner(run_cfg, policy, sweep=cfg)
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                              time_planning=False, keep_pictures=False)
     if args.out:

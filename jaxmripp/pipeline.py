@@ -45,16 +45,18 @@ def initial_params(cfg: Config):
 
 
 def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
-                    relay: bool | None = None, sectors: bool = False):
+                    sweep: Config | None = None):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
-    export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config. A
-    policy deciding in turn (`policy.claims`) hears claims as `relay` says (the sweep's
-    radio.relay; default the run's); `sectors` applies the sector rule (`eval.sectors`)."""
+    export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config,
+    deployed as the `sweep` config says (default `cfg`): a policy deciding in turn
+    (`policy.claims`) hears claims as its radio.relay says, and its eval.sectors applies
+    the sector rule."""
+    sweep = cfg if sweep is None else sweep
     trainer = trainmod.Trainer.build(cfg)
-    relay = cfg.radio.relay if relay is None else relay
-    in_turn = (cfg.sensor, cfg.candidates.shell[1], relay) if cfg.policy.claims else None
+    in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay) if cfg.policy.claims
+               else None)
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
-                          cfg.policy.width, in_turn=in_turn, sectors=sectors)
+                          cfg.policy.width, in_turn=in_turn, sectors=sweep.eval.sectors)
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:

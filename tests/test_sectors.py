@@ -5,10 +5,15 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxmripp.config import from_dict
+from jaxmripp.evaluation.planners import in_sectors
+from jaxmripp.sim import env
+from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import sectors
 from jaxmripp.spec.layout import FEATURES
 
@@ -60,13 +65,6 @@ def test_the_mask_keeps_the_own_sector_while_it_has_views_there():
 def test_a_policy_deciding_with_sectors_is_offered_only_its_own_views():
     """After a few steps of a 3-robot team, each robot's offered candidates are those of
     its sector with view gain (checked against NumPy azimuths), or its whole mask."""
-    import jax  # noqa: PLC0415
-
-    from jaxmripp.config import from_dict  # noqa: PLC0415
-    from jaxmripp.evaluation.planners import in_sectors  # noqa: PLC0415
-    from jaxmripp.sim import env  # noqa: PLC0415
-    from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: PLC0415
-
     cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 8},
                      "safety": {"takeoff_scan": True}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
