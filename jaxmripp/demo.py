@@ -61,6 +61,9 @@ def main(argv: list[str] | None = None) -> float:
                         help="greedy: weight of the utility std (default: eval.greedy_kappa)")
     parser.add_argument("--lam", type=float, default=None,
                         help="greedy: weight of the comm mean (default: eval.greedy_lambda)")
+    parser.add_argument("--sectors", action="store_true",
+                        help="each robot keeps to its sector of the world while it has unknown "
+                             "views there (jaxmripp.spec.sectors)")
     parser.add_argument("--quiet", action="store_true", help="only the final line")
     args = parser.parse_args(argv)
 
@@ -96,13 +99,14 @@ def main(argv: list[str] | None = None) -> float:
     kappa = cfg.eval.greedy_kappa if args.kappa is None else args.kappa
     lam = cfg.eval.greedy_lambda if args.lam is None else args.lam
     planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
-                               lam=lam, max_steps=steps, seed=args.seed * 1000 + i)
+                               lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
+                               sectors=args.sectors)
                 for i in range(n)]
     position = pads(spec.start, n, spacing)
     heading = np.full(n, spec.start_heading, np.int32)
     blocked = np.zeros(n, bool)
     found = np.zeros(valid.shape, bool)
-    mode = planners[0].mode
+    mode = planners[0].mode + (" (sectors)" if args.sectors else "")
     if not args.quiet:
         print(f"{n} robots, {mode} planners, G = {size}, {int(valid.sum())} windows, "
               f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")

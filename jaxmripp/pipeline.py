@@ -9,7 +9,7 @@ from typing import Callable
 import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
-from jaxmripp.evaluation.planners import baseline_planner, policy_planner
+from jaxmripp.evaluation.planners import baseline_planner, deployed, policy_planner
 from jaxmripp import config as cfgmod
 from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.runtime import weights as weights_format
@@ -49,14 +49,13 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
     """A deterministic policy planner from a training run's checkpoint or from a shipped
     export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config,
     deployed as the `sweep` config says (default `cfg`): a policy deciding in turn
-    (`policy.claims`) hears claims as its radio.relay says, and its eval.sectors applies
-    the sector rule."""
+    (`policy.claims`) hears claims as its radio.relay says."""
     sweep = cfg if sweep is None else sweep
     trainer = trainmod.Trainer.build(cfg)
     in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay) if cfg.policy.claims
                else None)
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
-                          cfg.policy.width, in_turn=in_turn, sectors=sweep.eval.sectors)
+                          cfg.policy.width, in_turn=in_turn)
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:
@@ -71,7 +70,8 @@ def report(cfg: Config, run_dir: Path, log: Callable[[str], None] = print,
     returns the mean % of windows found per planner. `compiler_options` go to XLA.
     Every process of a multi-process run evaluates its share; process 0 writes."""
     params = evaluate.eval_params(cfg, cfg.train.eval_budget, layout="random")
-    planners = [trained_planner(cfg, run_dir)] + baseline_planners(cfg, params)
+    planners = [deployed(p, cfg.eval.sectors)
+                for p in [trained_planner(cfg, run_dir), *baseline_planners(cfg, params)]]
     dyn = evaluate.eval_dynamic(cfg, cfg.train.eval_budget)
     keys = evaluate.episode_keys(cfg.eval.seed, cfg.train.eval_worlds)
     results = evaluate.compare(planners, params, dyn, keys, compiler_options)

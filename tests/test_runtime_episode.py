@@ -32,6 +32,7 @@ import numpy as np
 import pytest
 
 from jaxmripp.evaluation import baselines
+from jaxmripp.evaluation.planners import in_sectors
 from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
@@ -58,7 +59,7 @@ CROWDED = ["radio.collision_distance=0.1", "robots.pad_spacing=0.11", "robots.co
 def make_sim(cfg):
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     return SimpleNamespace(
-        params=params, radio_range=cfg.radio.range,
+        params=params, dyn=dyn, radio_range=cfg.radio.range,
         spec=RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg)))),
         reset=jax.jit(lambda key: envmod.reset(key, params, dyn)),
         step=jax.jit(lambda key, state, actions: envmod.step(key, state, actions, params, dyn)),
@@ -133,7 +134,7 @@ def share_maps(state, planners, contact, t, traffic=None):
 
 def runtime_episode(sim, seed, planners, decide, traffic=None):
     """Steps the env with the planners' decisions. decide(t, i, planner, obs, candidates,
-    key_act) -> Decision. Returns per step (obs, state, decisions, resolved); checks that
+    key_act, state) -> Decision. Returns per step (obs, state, decisions, resolved); checks that
     the robots the env holds are those whose `resolve` held (and `share_maps`' checks)."""
     key_reset, keys = keys_of(seed, sim.params.max_steps)
     obs, state = sim.reset(key_reset)
@@ -152,7 +153,7 @@ def runtime_episode(sim, seed, planners, decide, traffic=None):
         decisions = []
         for i, planner in enumerate(planners):
             offered = Candidates(c.position[i], c.heading[i], c.cost[i], o.mask[i])
-            d = decide(t, i, planner, o, offered, key_act)
+            d = decide(t, i, planner, o, offered, key_act, state)
             # The GP's posterior std is the square root of a small difference of float32
             # terms updated by different algorithms on each side: relative 2e-4 allowed.
             np.testing.assert_allclose(d.features, o.features[i], atol=1e-5, rtol=2e-4,
@@ -192,7 +193,7 @@ def greedy_runtime(sim, budget):
                                mode="greedy", kappa=KAPPA, lam=LAM)
                 for i in range(sim.params.n_robots)]
 
-    def decide(t, i, planner, o, offered, key_act):
+    def decide(t, i, planner, o, offered, key_act, state):
         # The JAX planner's tie-break noise for this step, from the same key.
         jitter = np.asarray(1e-5 * jax.random.uniform(key_act, o.mask.shape))
         return planner.decide(candidates=offered, tie_break=jitter[i])
@@ -316,31 +317,41 @@ def test_the_runtime_holds_exactly_the_robots_the_env_holds(priority):
     assert holds >= 2, "no robot held: pick other seeds"
 
 
-def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path):
+@pytest.mark.parametrize("sectors", [False, True], ids=["whole_mask", "sectors"])
+def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors):
+    """The runtime policy's logits, memory and choice are the Flax policy's on the env's
+    observation; with `sectors` on both sides (`OnboardPlanner(sectors=True)`, the JAX
+    sweep's `eval.sectors`) also on the same sector-restricted masks."""
     network, params = init_params(CFG, seed=3)
     export.export(CFG, params, tmp_path)
     seed = 4
     obs, state = sim.reset(keys_of(seed, 1)[0])
-    planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial))
+    planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial), sectors=sectors)
                 for i in range(3)]
     assert all(p.mode == "policy" for p in planners)
     apply = jax.jit(jax.vmap(network.apply, in_axes=(None, 0, 0)))
     memory = {"flax": jnp.zeros((3, CFG.policy.width))}
-    compared = []
+    compared, narrowed = [], 0
 
-    def decide(t, i, planner, o, offered, key_act):
+    def decide(t, i, planner, o, offered, key_act, state):
+        nonlocal narrowed
         if i == 0:  # the Flax policy on the env's observation, all robots at once
-            memory["flax"], logits, _ = apply(params, memory["flax"], o)
+            seen = in_sectors(o, state, sim.dyn) if sectors else o
+            memory["mask"] = np.asarray(seen.mask)
+            memory["flax"], logits, _ = apply(params, memory["flax"], seen)
             memory["logits"] = np.asarray(logits)
         d = planner.decide(candidates=offered)
-        want = memory["logits"][i]
-        np.testing.assert_array_equal(d.mask, o.mask[i])
-        np.testing.assert_allclose(d.scores[d.mask], want[o.mask[i]], atol=1e-4)
+        want, mask = memory["logits"][i], memory["mask"][i]
+        np.testing.assert_array_equal(d.mask, mask)
+        narrowed += int(np.any(mask != o.mask[i]))
+        np.testing.assert_allclose(d.scores[d.mask], want[mask], atol=1e-4)
         np.testing.assert_allclose(planner.memory, np.asarray(memory["flax"][i]), atol=1e-4)
-        if o.mask[i].any():
-            assert d.index == int(np.argmax(np.where(o.mask[i], want, -np.inf)))
-            compared.append(np.ptp(want[o.mask[i]]))
+        if mask.any():
+            assert d.index == int(np.argmax(np.where(mask, want, -np.inf)))
+            compared.append(np.ptp(want[mask]))
         return d
 
     runtime_episode(sim, seed, planners, decide)
     assert len(compared) >= 10 and np.median(compared) > 0.1  # logits are not degenerate
+    # The sector rule restricted some decisions (and only with it on).
+    assert (narrowed >= 3) if sectors else (narrowed == 0)

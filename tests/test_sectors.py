@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 
 from jaxmripp.config import from_dict
-from jaxmripp.evaluation.planners import in_sectors
+from jaxmripp.evaluation.baselines import random_planner
+from jaxmripp.evaluation.planners import deployed, in_sectors
 from jaxmripp.sim import env
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import sectors
@@ -62,9 +63,10 @@ def test_the_mask_keeps_the_own_sector_while_it_has_views_there():
                                                       jnp.asarray(own)), kept)
 
 
-def test_a_policy_deciding_with_sectors_is_offered_only_its_own_views():
+def test_robots_in_sectors_are_offered_only_their_own_views():
     """After a few steps of a 3-robot team, each robot's offered candidates are those of
-    its sector with view gain (checked against NumPy azimuths), or its whole mask."""
+    its sector with view gain (checked against NumPy azimuths), or its whole mask, and a
+    planner deployed with sectors picks among them."""
     cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 8},
                      "safety": {"takeoff_scan": True}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
@@ -74,6 +76,10 @@ def test_a_policy_deciding_with_sectors_is_offered_only_its_own_views():
         last = obs.mask.shape[-1] - 1 - jnp.argmax(obs.mask[:, ::-1], axis=-1)
         obs, state, *_ = step(jax.random.PRNGKey(t), state, last, params, dyn)
     offered = np.asarray(jax.jit(in_sectors)(obs, state, dyn).mask)
+    # A radio that reaches across the world (rho >= the diagonal, sqrt 3) turns it off.
+    for rho, on in [(1.73, True), (1.74, False), (np.inf, False)]:
+        far = jax.jit(in_sectors)(obs, state, dyn.replace(radio_range=jnp.float32(rho))).mask
+        np.testing.assert_array_equal(np.asarray(far), offered if on else np.asarray(obs.mask))
     position = np.asarray(state.candidates.position, np.float64)
     azimuth = np.degrees(np.arctan2(position[..., 1], position[..., 0]))  # pad 0 at (0, 0)
     gain = np.asarray(obs.features)[..., FEATURES.index("view_unknown")] > 0
@@ -86,3 +92,10 @@ def test_a_policy_deciding_with_sectors_is_offered_only_its_own_views():
         np.testing.assert_array_equal(offered[robot], expected)
         restricted += int(useful.any() and useful.sum() < mask[robot].sum())
     assert restricted > 0
+    # Every planner of a sweep with eval.sectors (here random) chooses among those only.
+    memory = jnp.zeros((3, 1))
+    for planner, inside in [(random_planner(), False), (deployed(random_planner(), True), True)]:
+        act = jax.jit(planner.act)
+        chosen = np.stack([np.asarray(act(jax.random.PRNGKey(10 + k), memory, obs, state,
+                                          dyn)[1]) for k in range(8)])
+        assert offered[np.arange(3), chosen].all() == inside

@@ -198,8 +198,8 @@ class EvalConfig:
     batch: int = 0  # episodes per vmapped call; 0 sizes it to memory
     time_planning: bool = True
     render: bool = True
-    # trained policies keep to their sector of the world while it has views
-    # (jaxmripp.spec.sectors); JAX evaluation only, the onboard runtime does not apply it
+    # every planner's robots keep to their sector of the world while it has views, where
+    # the radio range is short (jaxmripp.spec.sectors; OnboardPlanner(sectors=True))
     sectors: bool = False
 
 

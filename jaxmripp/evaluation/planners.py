@@ -13,21 +13,16 @@ from jaxmripp.spec import sectors as sectors_spec
 
 
 def policy_planner(network, params, width: int, name: str = "policy",
-                   in_turn: tuple[SensorConfig, float, bool] | None = None,
-                   sectors: bool = False) -> Planner:
+                   in_turn: tuple[SensorConfig, float, bool] | None = None) -> Planner:
     """The trained policy at deployment: each robot takes its most probable candidate.
     With `in_turn` = (sensor, shell[1], relay) (a policy trained with `policy.claims`)
-    robots decide in index order on the views their peers left unclaimed. With `sectors`
-    (`eval.sectors`) each robot keeps to its sector of the world while it has views
-    there (`jaxmripp.spec.sectors`)."""
+    robots decide in index order on the views their peers left unclaimed."""
     from jaxmripp.learn.ppo import apply_batched  # noqa: PLC0415 (ppo imports the env)
 
     def init(n_robots):
         return jnp.zeros((n_robots, width), jnp.float32)
 
     def act(key, memory, obs, state=None, dyn=None):
-        if sectors:
-            obs = in_sectors(obs, state, dyn)
         if in_turn is None:
             memory, logits, _ = apply_batched(network, params, memory, obs)
             return memory, baselines.masked_argmax(logits, obs.mask)
@@ -42,13 +37,26 @@ def policy_planner(network, params, width: int, name: str = "policy",
     return Planner(name, init, act)
 
 
+def deployed(planner: Planner, sectors: bool) -> Planner:
+    """`planner` as a sweep runs it: with `sectors` (`eval.sectors`) its robots keep to
+    their sectors of the world (`in_sectors`), whichever rule then chooses."""
+    if not sectors:
+        return planner
+
+    def act(key, memory, obs, state, dyn):
+        return planner.act(key, memory, in_sectors(obs, state, dyn), state, dyn)
+
+    return Planner(planner.name, planner.init, act)
+
+
 def in_sectors(obs, state, dyn):
     """The team's observations (N, ...) with the sector rule of `jaxmripp.spec.sectors`
-    applied to their masks."""
+    applied to their masks (where it applies at dyn.radio_range)."""
     n = obs.mask.shape[0]
     own = sectors_spec.own_sector(state.candidates.position, dyn.start,
                                   jnp.arange(n)[:, None], n, xp=jnp)
-    return obs.replace(mask=sectors_spec.sector_mask(obs.mask, obs.features, own))
+    mask = sectors_spec.sector_mask(obs.mask, obs.features, own)
+    return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))
 
 
 def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:

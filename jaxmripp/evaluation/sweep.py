@@ -36,7 +36,7 @@ from jaxmripp.config import Config
 from jaxmripp.evaluation import cells, evaluate
 from jaxmripp.sim.episode import Planner
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
-from jaxmripp.evaluation.planners import baseline_planner, eval_setting
+from jaxmripp.evaluation.planners import baseline_planner, deployed, eval_setting
 from jaxmripp.evaluation.stats import mean_ci, welch_ttest
 
 def shapes_of(cfg: Config) -> list[Shape]:
@@ -224,7 +224,7 @@ def _run_group(cfg: Config, group: list[Shape], names: list[str],
     dynamics = [evaluate.eval_dynamic(cfg, s.budget, s.radio_range) for s in group]
     runs = []
     for name in names:
-        planner = policies.get(name) or baseline_planner(name, params, e)
+        planner = deployed(policies.get(name) or baseline_planner(name, params, e), e.sectors)
         group_runs = cells.run_shapes(planner, params, group, dynamics, e.seed, e.worlds,
                                       e.trials, compiler_options=compiler_options, **options)
         if time_planning:

@@ -68,6 +68,7 @@ from jaxmripp.runtime.weights import RuntimeSpec
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, OCCUPIED
 from jaxmripp.spec import layout
+from jaxmripp.spec import sectors as sectors_spec
 from jaxmripp.spec.layout import FEATURES
 
 F32 = np.float32
@@ -87,7 +88,7 @@ class Decision:
     reason: str  # the mode that chose (one of MODES), or why it hovers
     mode: str
     scores: np.ndarray  # (L,) policy logits (infeasible floored) or greedy scores
-    mask: np.ndarray  # (L,) bool candidates the rule could pick (offered and safe)
+    mask: np.ndarray  # (L,) bool candidates the rule could pick (offered, safe, in sector)
     safe: np.ndarray  # (L,) bool passed the safety filter
     features: np.ndarray  # (L, F) policy input, layout FEATURES
     robot_state: np.ndarray  # (S,) policy input, layout ROBOT_STATE
@@ -111,6 +112,7 @@ class OnboardPlanner(RadioExchange):
         facade_weight: float = 0.0,
         max_steps: int | None = None,
         seed: int | None = None,
+        sectors: bool = False,
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
@@ -118,7 +120,10 @@ class OnboardPlanner(RadioExchange):
         lam * communication mean), "nbv" (next-best view: `jaxmripp.spec.layout.nbv_score`
         with `facade_weight`) or "random" (uniform among the safe candidates); max_steps:
         the episode length the policy's step feature is normalised by (default: the
-        export's); seed: candidate sampling (default: id).
+        export's); seed: candidate sampling (default: id); sectors: keep to this robot's
+        sector of the world, seen from the team's first pad `spec.start`, while it has
+        unknown views there, if the radio range is short enough for the rule
+        (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
@@ -132,6 +137,7 @@ class OnboardPlanner(RadioExchange):
         self.mode = mode
         self.kappa, self.lam = float(kappa), float(lam)
         self.facade_weight = float(facade_weight)
+        self.sectors = bool(sectors)
         self.max_steps = spec.max_steps if max_steps is None else int(max_steps)
         self.rng = np.random.default_rng(self.id if seed is None else seed)
 
@@ -254,6 +260,10 @@ class OnboardPlanner(RadioExchange):
                                  self._known_robots(), self.spec)
         done = self.step >= self.max_steps
         mask = c.valid & safe & (not done)
+        if self.sectors and sectors_spec.applies(self.spec.radio_range):
+            own = sectors_spec.own_sector(c.position, np.asarray(self.spec.start, F32),
+                                          self.id, self.team_size)
+            mask = sectors_spec.sector_mask(mask, features, own)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
 
         if not mask.any():

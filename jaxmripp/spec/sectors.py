@@ -8,6 +8,9 @@ closed. A robot is offered only the candidates in its own sector that have unkno
 voxels in view (view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its
 sector offers none, its whole mask. Robots that rarely hear each other (a short radio
 range) thus still look at different parts of the world until their own part is seen.
+The rule applies only to a radio range shorter than the unit cube's diagonal: a radio
+that reaches across the whole world connects the team wherever it flies, and the robots
+then divide the work by what they tell each other (shared maps, claims) instead.
 
 Plain indexing and arithmetic with `xp` (numpy or jax.numpy), so both sides share it.
 """
@@ -19,6 +22,12 @@ import numpy as np
 from jaxmripp.spec.layout import FEATURES
 
 GAIN_COLUMN = FEATURES.index("view_unknown")
+WHOLE_WORLD_RANGE = float(np.sqrt(3.0))  # the unit cube's diagonal
+
+
+def applies(radio_range):
+    """Whether the rule is on for this radio range (a bool, or a traced one in JAX)."""
+    return radio_range < WHOLE_WORLD_RANGE
 
 
 def own_sector(position, start, robot, team: int, xp=np):
