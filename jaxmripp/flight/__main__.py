@@ -33,6 +33,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
                         help="building sides drawn from LO..HI voxels (default %(default)s; "
                              "the shipped policy trained on 3,3)")
+    parser.add_argument("--sectors", action="store_true",
+                        help="each drone keeps to its sector of the world while it has unknown "
+                             "views there (jaxmripp.spec.sectors)")
     parser.add_argument("--out", type=Path, default=Path("runs/flight"))
     parser.add_argument("--no-pictures", action="store_true")
     args = parser.parse_args(argv)
@@ -46,10 +49,12 @@ def main(argv: list[str] | None = None) -> int:
     except (OSError, ValueError) as error:
         print(f"python -m jaxmripp.flight: {error}", file=sys.stderr)
         return 2
-    settings = MissionSettings(budget=args.budget)
+    settings = MissionSettings(budget=args.budget, sectors=args.sectors)
     city = citymod.generate(args.seed, team.world, settings.frame)
-    print(f"{team.spec.team_size} drones, {args.planner} planners, {city.n_windows} windows, "
-          f"{len(city.box_centre)} buildings, budget {args.budget:g}, seed {args.seed}")
+    rule = " (sectors)" if args.sectors else ""
+    print(f"{team.spec.team_size} drones, {args.planner} planners{rule}, "
+          f"{city.n_windows} windows, {len(city.box_centre)} buildings, "
+          f"budget {args.budget:g}, seed {args.seed}")
     result = fly_mission(city, team.spec, team.exported, args.planner, settings,
                          seed=args.seed, pad_spacing=team.pad_spacing,
                          progress=lambda k, pct: print(f"round {k:3d}  found {pct:5.1f}%",

@@ -44,6 +44,7 @@ class MissionSettings:
     round_limit_s: float = 120.0  # simulated seconds a round's flights may take
     max_rounds: int | None = None  # default: enough for the budget
     record_every_s: float = 1.0  # positions kept for the pictures
+    sectors: bool = False  # drones keep to their sectors (OnboardPlanner(sectors=True))
     frame: CityFrame = CityFrame()
     quadrotor: QuadrotorParams = QuadrotorParams()
 
@@ -116,7 +117,8 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
                                         int(math.ceil(per_robot / spec.shell[0])) + 4)
     planners = [OnboardPlanner(spec, i, per_robot, team_size=n,
                                policy=policy.policy if policy is not None else None,
-                               mode=planner, max_steps=rounds, seed=seed * 1000 + i)
+                               mode=planner, max_steps=rounds, seed=seed * 1000 + i,
+                               sectors=settings.sectors)
                 for i in range(n)]
     position = pads(spec.start, n, pad_spacing)
     heading = np.full(n, spec.start_heading, np.int64)
