@@ -62,11 +62,7 @@ def main(argv=None) -> int:
 
     planners = {}
     for name, run_dir in policies:
-        run_cfg = cfgmod.load(run_dir / "config.yaml")
-        for note in sweep.policy_mismatches(run_cfg, cfg):
-            say(f"note: {name} was trained with {note}")
-        planners[name] = pipeline.trained_planner(run_cfg, run_dir, best=args.best,
-                                                  sweep=cfg)._replace(name=name)
+        planners[name] = pipeline.sweep_planner(run_dir, cfg, name, best=args.best, log=say)
         say(f"policy {name}: {run_dir}")
     out = Path(args.out) if args.out else (
         policies[0][1] / "eval" if policies else Path("runs") / Path(args.config).stem / "eval")

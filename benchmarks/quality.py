@@ -77,10 +77,8 @@ def main(argv=None) -> int:
 
     policies = {}
     if has_policy:
-        run_cfg = cfgmod.load(policy / "config.yaml")
-        for note in sweep.policy_mismatches(run_cfg, cfg):
-            print(f"note: the policy was trained with {note}", file=sys.stderr)
-        policies["policy"] = pipeline.trained_planner(run_cfg, policy, sweep=cfg)
+        policies["policy"] = pipeline.sweep_planner(
+            policy, cfg, log=lambda line: print(line, file=sys.stderr))
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                              time_planning=False, keep_pictures=False)
     if args.out:

@@ -9,6 +9,7 @@ from typing import Callable
 import numpy as np
 
 from jaxmripp.evaluation import baselines, evaluate, viz
+from jaxmripp.evaluation.sweep import policy_mismatches
 from jaxmripp.evaluation.planners import baseline_planner, deployed, policy_planner
 from jaxmripp import config as cfgmod
 from jaxmripp.learn import policy as policymod, train as trainmod
@@ -56,6 +57,17 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
                else None)
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
                           cfg.policy.width, in_turn=in_turn)
+
+
+def sweep_planner(run_dir: Path, sweep: Config, name: str = "policy", best: bool = False,
+                  log: Callable[[str], None] = print) -> baselines.Planner:
+    """The policy in `run_dir` (a training run or an export, with its config.yaml) as the
+    sweep config `sweep` deploys it, named `name`; where the sweep's settings differ from
+    the policy's training, a note goes to `log`."""
+    cfg = cfgmod.load(run_dir / "config.yaml")
+    for note in policy_mismatches(cfg, sweep):
+        log(f"note: {name} was trained with {note}")
+    return trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 import subprocess
 import sys
@@ -186,4 +187,12 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
         _, logits, _ = onboard(onboard.initial_memory(), obs.features[i], obs.mask[i],
                                obs.robot_state[i])
         assert int(actions[i]) == int(np.argmax(np.where(obs.mask[i], logits, -np.inf)))
+    # For a sweep of other settings: the same choices, under its name, with a note.
+    notes = []
+    sweep_cfg = dataclasses.replace(cfg, sensor=dataclasses.replace(cfg.sensor, range=0.2))
+    named = pipeline.sweep_planner(out, sweep_cfg, "mine", log=notes.append)
+    assert named.name == "mine"
+    np.testing.assert_array_equal(named.act(None, named.init(n), obs)[1], actions)
+    assert notes == [f"note: mine was trained with sensor.range={cfg.sensor.range} "
+                     "(evaluating with 0.2)"]
     assert ship.main([str(tmp_path / "nothing"), str(out)]) == 1
