@@ -50,6 +50,18 @@ def test_a_pad_mid_edge_spans_a_half_turn():
     assert math.isclose(math.degrees(math.atan2(1.0, -0.5)), 116.565, abs_tol=1e-3)
 
 
+@pytest.mark.parametrize("xp", [np, jnp], ids=["numpy", "jax"])
+def test_a_pad_on_the_far_edge_splits_the_world_into_left_and_right(xp):
+    # From (0.5, 1) the world lies at azimuths -180 to 0 degrees, across the +-180 cut of
+    # atan2: two robots split it at x = 0.5, robot 0 on the x < 0.5 side.
+    start = xp.asarray([0.5, 1.0, 0.0], xp.float32)
+    positions = xp.asarray([[0.2, 0.5, 0.2], [0.05, 0.95, 0.2], [0.8, 0.5, 0.2],
+                            [0.95, 0.95, 0.2]], xp.float32)
+    for robot, expected in ((0, [True, True, False, False]), (1, [False, False, True, True])):
+        np.testing.assert_array_equal(
+            np.asarray(sectors.own_sector(positions, start, robot, 2, xp=xp)), expected)
+
+
 def test_the_mask_keeps_the_own_sector_while_it_has_views_there():
     gain = FEATURES.index("view_unknown")
     features = np.zeros((2, 4, len(FEATURES)), np.float32)

@@ -1,8 +1,9 @@
 """Sectors: a division of the world among the team that needs no radio.
 
 Seen from the first take-off pad `start` (on the world's boundary, as the pads are:
-`jaxmripp.spec.flight`), the ground azimuths of the unit square span [lo, hi] (the
-extremes over its four corners; [0, pi/2] from a corner). Robot i of a team of N owns
+`jaxmripp.spec.flight`), the ground azimuths of the unit square, measured from the
+direction to its centre, span [lo, hi] (the extremes over its four corners; a quarter
+turn from a corner, a half turn from the middle of an edge). Robot i of a team of N owns
 the sector of azimuths [lo + i (hi - lo) / N, lo + (i + 1) (hi - lo) / N), the last one
 closed. A robot is offered only the candidates in its own sector that have unknown
 voxels in view (view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its
@@ -33,14 +34,22 @@ def applies(radio_range):
 def own_sector(position, start, robot, team: int, xp=np):
     """Candidate positions (..., 3), the first pad (3,), robot index (broadcasts against
     the leading axes) -> (...,) bool: the candidate lies in the robot's sector."""
+    # Azimuths are measured from the direction to the square's centre, so the span of a
+    # pad on any edge is one interval within (-pi, pi] (from the y = 1 edge it would
+    # straddle the +-pi cut).
+    inward = xp.arctan2(0.5 - start[1], 0.5 - start[0])
+
+    def azimuth_of(dx, dy):
+        return xp.mod(xp.arctan2(dy, dx) - inward + np.pi, 2 * np.pi) - np.pi
+
     corners = xp.asarray([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]], xp.float32)
     offset = corners - start[:2]
     # A corner at the pad itself has no azimuth: it must not widen the span.
     away = xp.sum(offset * offset, axis=-1) > 0
-    corner_azimuth = xp.arctan2(offset[:, 1], offset[:, 0])
+    corner_azimuth = azimuth_of(offset[:, 0], offset[:, 1])
     lo = xp.min(xp.where(away, corner_azimuth, xp.inf))
     hi = xp.max(xp.where(away, corner_azimuth, -xp.inf))
-    azimuth = xp.arctan2(position[..., 1] - start[1], position[..., 0] - start[0])
+    azimuth = azimuth_of(position[..., 0] - start[0], position[..., 1] - start[1])
     share = xp.floor((azimuth - lo) / (hi - lo) * team)
     sector = xp.clip(share, 0, team - 1)
     return sector == robot
