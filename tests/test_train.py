@@ -228,11 +228,42 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     np.testing.assert_allclose(float(parts["imitation"]), expected, rtol=1e-4)
     np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
 
+    # Choices stored by the rollout (ppo.teacher = nbv_ahead) replace the NBV choice: here
+    # the feasible candidate the NBV score likes least.
+    stored = np.where(m > 0, score, np.inf).argmin(axis=-1)
+    _, parts = ppo.loss_fn(params, trainer.network, batch.replace(teacher=jnp.asarray(stored)),
+                           zeros, value, moments, cfg.ppo, ppo.Teacher.at(cfg.ppo, 0, facade))
+    picked = np.take_along_axis(log_softmax, stored[act][..., None], -1)[..., 0]
+    assert np.any(stored[act] != choice[act])
+    np.testing.assert_allclose(float(parts["imitation"]), -picked.mean(), rtol=1e-4)
+
     decaying = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                                   "ppo.teacher_updates=8"]).ppo
     weights = [float(ppo.Teacher.at(decaying, u, facade).weight) for u in (0, 2, 8, 20)]
     np.testing.assert_allclose(weights, [coef, 0.75 * coef, 0.0, 0.0], rtol=1e-6)
     assert float(ppo.Teacher.at(cfg.ppo, 20, facade).weight) == np.float32(coef)
+
+
+def test_the_lookahead_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
+    """ppo.teacher = nbv_ahead: the transitions carry that planner's choices, feasible on
+    the observations, and some differ from the one-step NBV choice; with the weight at 0
+    the rollout skips the planner and stores zeros."""
+    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
+                                             "eval.nbv_ahead_branches=4"])
+    trainer = trainmod.Trainer.build(cfg)
+    dyn = DynamicParams.from_config(cfg)
+    params = trainer.init().params
+    runner = ppo.start_runner(jax.random.PRNGKey(0), cfg, trainer.env_params, dyn)
+    run = jax.jit(lambda weight: ppo.rollout(
+        jax.random.PRNGKey(1), runner, params, trainer.network, cfg, trainer.env_params, dyn,
+        teacher=ppo.Teacher(weight, cfg.eval.nbv_team_facade))[1])
+    taught = jax.tree.map(np.asarray, run(jnp.float32(1.0)))
+    feasible = np.take_along_axis(taught.obs.mask, taught.teacher[..., None], -1)[..., 0]
+    assert taught.teacher.dtype == np.int32 and np.all(feasible | ~taught.active)
+    nbv = layout.masked_argmax(layout.nbv_score(taught.obs.features, cfg.eval.nbv_team_facade),
+                               taught.obs.mask)
+    assert np.any((nbv != taught.teacher) & taught.active)
+    assert not np.any(np.asarray(run(jnp.float32(0.0)).teacher))
 
 
 def test_gae_matches_a_hand_computed_example():

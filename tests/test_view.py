@@ -172,7 +172,7 @@ def _twins():
 def test_deciding_in_turn_hides_exactly_the_views_peers_claimed():
     params, _, state, obs = _twins()
     column = {name: FEATURES.index(name) for name in FEATURES}
-    decide = lambda i, mine: (jnp.argmax(jnp.where(  # noqa: E731
+    decide = lambda i, mine, occupancy: (jnp.argmax(jnp.where(  # noqa: E731
         mine.mask, mine.features[:, column["view_unknown_per_cost"]], -1.0)), None)
     run = jax.jit(lambda obs, state: claims.in_turn(decide, obs, state, params.sensor,
                                                     params.candidates.shell[1]))
@@ -206,7 +206,7 @@ def test_with_relay_a_robot_hears_the_claims_of_its_whole_component():
                           candidates=jax.tree.map(triple, state.candidates), heard=chain)
     obs = jax.jit(env.observe, static_argnums=1)(state, params)
     unknown = FEATURES.index("view_unknown")
-    decide = lambda i, mine: (jnp.argmax(jnp.where(  # noqa: E731
+    decide = lambda i, mine, occupancy: (jnp.argmax(jnp.where(  # noqa: E731
         mine.mask, mine.features[:, FEATURES.index("view_unknown_per_cost")], -1.0)), None)
     left = {}
     for relay in (False, True):

@@ -48,8 +48,8 @@ def _pair(rule):
 _POSITIVE = _range(0, lo_open=True)
 _NONNEG = _range(0)
 _UNIT = _range(0, 1)
-PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "mcts", "rig",
-            "oracle")
+PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "nbv_ahead", "mcts",
+            "rig", "oracle")
 
 RULES: dict[str, tuple] = {
     "world.size": _range(10, 256),
@@ -109,6 +109,7 @@ RULES: dict[str, tuple] = {
     "ppo.max_grad_norm": _POSITIVE,
     "ppo.teacher_coef": _NONNEG,
     "ppo.teacher_updates": _NONNEG,
+    "ppo.teacher": _choice("nbv", "nbv_ahead"),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),
@@ -138,6 +139,9 @@ RULES: dict[str, tuple] = {
     "eval.coordinated_mu": _NONNEG,
     "eval.nbv_facade": _NONNEG,
     "eval.nbv_team_facade": _NONNEG,
+    "eval.nbv_ahead_discount": _NONNEG,
+    "eval.nbv_ahead_branches": _range(1, 4096),
+    "eval.nbv_ahead_flights": _range(2, 4),
     "eval.mcts_simulations": _range(1, 4096),
     "eval.mcts_depth": _range(1, 64),
     "eval.mcts_considered": _range(1, 512),
@@ -190,6 +194,12 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.ppo.teacher_coef > 0 and not cfg.policy.view_features:
         problems.append(("ppo.teacher_coef", cfg.ppo.teacher_coef,
                          "0 while policy.view_features is false (the teacher reads them)"))
+    uses_ahead = "nbv_ahead" in cfg.eval.planners or (cfg.ppo.teacher == "nbv_ahead"
+                                                      and cfg.ppo.teacher_coef > 0)
+    if uses_ahead and cfg.eval.nbv_ahead_branches > cfg.candidates.count:
+        problems.append(("eval.nbv_ahead_branches", cfg.eval.nbv_ahead_branches,
+                         f"at most the candidate count 4 x candidates.positions = "
+                         f"{cfg.candidates.count}"))
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))

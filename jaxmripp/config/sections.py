@@ -147,6 +147,9 @@ class PPOConfig:
     # the observation each robot decided on: nbv_team's choice with policy.claims
     teacher_coef: float = 0.0
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
+    # whose choices: nbv (the score on the observation, as above) or nbv_ahead (that
+    # baseline's choices with the eval.nbv_ahead_* settings, computed in the rollouts)
+    teacher: str = "nbv"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -188,6 +191,9 @@ class EvalConfig:
     coordinated_mu: float = 0.3
     nbv_facade: float = 0.0  # weight of unknown facade voxels in nbv's score (tuned)
     nbv_team_facade: float = 2.0  # ... in nbv_team's score (tuned: docs/baselines.md)
+    nbv_ahead_discount: float = 3.0  # weight of nbv_ahead's later flights (tuned)
+    nbv_ahead_branches: int = 32  # candidates nbv_ahead follows at each flight (tuned)
+    nbv_ahead_flights: int = 2  # flights nbv_ahead looks ahead (2: one beyond the next)
     mcts_simulations: int = 64  # tuned with mcts_depth: docs/baselines.md
     mcts_depth: int = 4
     mcts_considered: int = 4

@@ -26,7 +26,7 @@ UTILITY_STD = FEATURES.index("utility_std")
 COMM_MEAN = FEATURES.index("comm_mean")
 
 
-def _no_memory(n_robots: int) -> jax.Array:
+def no_memory(n_robots: int) -> jax.Array:
     return jnp.zeros((n_robots, 1), jnp.float32)
 
 
@@ -42,7 +42,7 @@ def random_planner() -> Planner:
         noise = jax.random.uniform(key, obs.mask.shape)
         return memory, masked_argmax(noise, obs.mask)
 
-    return Planner("random", _no_memory, act)
+    return Planner("random", no_memory, act)
 
 
 def greedy_scores(obs: Observation, kappa: float, lam: float) -> jax.Array:
@@ -61,7 +61,7 @@ def greedy_planner(kappa: float = 1.0, lam: float = 0.0, name: str = "greedy") -
         jitter = 1e-5 * jax.random.uniform(key, obs.mask.shape)
         return memory, masked_argmax(greedy_scores(obs, kappa, lam) + jitter, obs.mask)
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)
 
 
 # ---------------------------------------------------------------------------------------
@@ -131,7 +131,7 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
         init = (jnp.zeros((n, 4), jnp.float32), jnp.zeros((n,), bool))
         return memory, _sequential(choose, init, n)
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)
 
 
 def oracle_planner(params, name: str = "oracle") -> Planner:
@@ -160,7 +160,7 @@ def oracle_planner(params, name: str = "oracle") -> Planner:
 
         return memory, _sequential(choose, state.discovered, n)
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)
 
 
 def nbv_scores(features: jax.Array, facade_weight: float) -> jax.Array:
@@ -176,7 +176,7 @@ def nbv_planner(facade_weight: float = 1.0, name: str = "nbv") -> Planner:
         jitter = 1e-6 * jax.random.uniform(key, obs.mask.shape)
         return memory, masked_argmax(nbv_scores(obs.features, facade_weight) + jitter, obs.mask)
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)
 
 
 def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team") -> Planner:
@@ -188,7 +188,7 @@ def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team")
     def act(key, memory, obs, state, dyn):
         jitter = 1e-6 * jax.random.uniform(key, obs.mask.shape)
 
-        def decide(i, mine):
+        def decide(i, mine, occupancy):
             score = nbv_scores(mine.features, facade_weight) + jitter[i]
             return masked_argmax(score, mine.mask), None
 
@@ -196,4 +196,4 @@ def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team")
                                        params.radio.relay)
         return memory, actions
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)

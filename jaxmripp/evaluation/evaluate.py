@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmripp.config import Config
-from jaxmripp.evaluation import baselines
+from jaxmripp.evaluation import baselines, lookahead
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_counts
 from jaxmripp.evaluation.planners import eval_setting
 from jaxmripp.parallel.mesh import data_parallel
@@ -192,6 +192,20 @@ def tune_rig(cfg: Config, iterations, depths, worlds: int, seed: int, budget: fl
                                    kappa=eval_setting(cfg, "rig_kappa"))
     rows = tune(cfg, planner_of, grid, worlds, seed, budget)
     return [(int(n), int(d), m) for (n, d), m in rows]
+
+
+def tune_nbv_ahead(cfg: Config, discounts, branches: int, flights: int, worlds: int,
+                   seed: int, budget: float) -> list[tuple[float, float]]:
+    """`tune` over nbv_ahead's discount with `branches` and `flights` (static) and
+    eval.nbv_team_facade: (discount, mean % found) rows, best first."""
+    planner_of = functools.partial(_nbv_ahead_of, facade=cfg.eval.nbv_team_facade,
+                                   branches=branches, flights=flights)
+    rows = tune(cfg, planner_of, [(d,) for d in discounts], worlds, seed, budget)
+    return [(d, m) for (d,), m in rows]
+
+
+def _nbv_ahead_of(weights, params, facade, branches, flights):
+    return lookahead.nbv_ahead_planner(params, facade, weights[0], branches, flights)
 
 
 def _rig_of(weights, params, iterations, max_depth, kappa):

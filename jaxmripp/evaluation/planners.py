@@ -27,7 +27,7 @@ def policy_planner(network, params, width: int, name: str = "policy",
             memory, logits, _ = apply_batched(network, params, memory, obs)
             return memory, baselines.masked_argmax(logits, obs.mask)
 
-        def decide(i, mine):
+        def decide(i, mine, occupancy):
             new_memory, logits, _ = network.apply(params, memory[i], mine)
             return baselines.masked_argmax(logits, mine.mask), new_memory
 
@@ -77,6 +77,11 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return baselines.nbv_planner(get("nbv_facade"))
     if name == "nbv_team":
         return baselines.nbv_team_planner(params, get("nbv_team_facade"))
+    if name == "nbv_ahead":
+        from jaxmripp.evaluation.lookahead import nbv_ahead_planner  # noqa: PLC0415
+
+        return nbv_ahead_planner(params, get("nbv_team_facade"), get("nbv_ahead_discount"),
+                                 get("nbv_ahead_branches"), get("nbv_ahead_flights"))
     if name == "oracle":
         return baselines.oracle_planner(params)
     if name == "mcts":
@@ -91,7 +96,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return rig_planner(params, iterations=get("rig_iterations"), max_depth=get("rig_depth"),
                            kappa=get("rig_kappa"))
     raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, nbv, "
-                     "nbv_team, mcts, rig, oracle (and policy, which needs --policy)")
+                     "nbv_team, nbv_ahead, mcts, rig, oracle (and policy, which needs --policy)")
 
 
 # Defaults of the EvalConfig fields read beyond the base ones; used while

@@ -39,7 +39,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp.evaluation.baselines import _no_memory, masked_argmax
+from jaxmripp.evaluation.baselines import no_memory, masked_argmax
 from jaxmripp.evaluation.tree_search import Context, scores
 from jaxmripp.sim import comms, geometry
 from jaxmripp.sim.episode import Planner
@@ -183,4 +183,4 @@ def rig_planner(params, iterations: int = 64, max_depth: int = 2, kappa: float =
         _, actions = jax.lax.scan(choose, init, jnp.arange(n))
         return memory, actions
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)

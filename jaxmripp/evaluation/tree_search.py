@@ -39,7 +39,7 @@ import mctx
 from flax import struct
 
 from jaxmripp.sim import comms, geometry, gp
-from jaxmripp.evaluation.baselines import _no_memory, masked_argmax
+from jaxmripp.evaluation.baselines import no_memory, masked_argmax
 from jaxmripp.sim.episode import Planner
 
 _NEG = -1e9  # prior logit of infeasible actions
@@ -189,4 +189,4 @@ def tree_search_planner(params, simulations: int = 16, max_depth: int = 2,
         _, actions = jax.lax.scan(choose, init, jnp.arange(n))
         return memory, actions
 
-    return Planner(name, _no_memory, act)
+    return Planner(name, no_memory, act)

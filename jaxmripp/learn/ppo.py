@@ -22,6 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
+from jaxmripp.evaluation import lookahead
 from jaxmripp.sim import claims, env as envmod
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -44,6 +45,9 @@ class Transition:
     reward: jax.Array  # (...,)
     terminal: jax.Array  # (...,) bool: the robot's episode ended with this step
     active: jax.Array  # (...,) bool: the robot could act (done robots give no samples)
+    # (...,) int32 the teacher's choice (ppo.teacher = nbv_ahead); None: the loss takes
+    # the next-best-view choice on `obs`
+    teacher: jax.Array | None = None
 
 
 @struct.dataclass
@@ -123,7 +127,7 @@ def act_in_turn(network: ActorCritic, params, memory, obs: Observation, keys,
     which are what the update must score."""
 
     def one_environment(memory, obs, key, state, params):
-        def decide(i, mine):
+        def decide(i, mine, occupancy):
             new_memory, logits, value = network.apply(params, memory[i], mine)
             dist = distribution(logits, mine.mask)
             action = jax.random.categorical(jax.random.fold_in(key, i), dist.logits)
@@ -161,11 +165,15 @@ def start_runner(key, cfg: Config, params: EnvParams, dyn: DynamicParams,
 
 
 def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
-            params: EnvParams, dyn: DynamicParams, data: DataParallel | None = None):
+            params: EnvParams, dyn: DynamicParams, data: DataParallel | None = None,
+            teacher: Teacher | None = None):
     """Steps every environment `rollout_steps` times; returns (runner, transitions, stats).
 
-    `params` is static (jit it as a closure or static argument), `dyn` may be traced."""
+    `params` is static (jit it as a closure or static argument), `dyn` may be traced. With
+    ppo.teacher = nbv_ahead the transitions carry that planner's choices while
+    `teacher.weight` > 0 (zeros after: the loss then ignores them)."""
     envs = cfg.train.envs
+    teach = _teacher_planner(cfg, params) if teacher is not None else None
     key_pool, key_steps = jax.random.split(key)
     reset_obs, reset_state = _split(jax.vmap(envmod.reset, in_axes=(0, None, None))(
         _split(jax.random.split(key_pool, envs), data), params, dyn), data)
@@ -184,6 +192,11 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
                                                   runner.obs, act_keys, cfg.train.blocks, data)
             decided = runner.obs
         active = jnp.any(runner.obs.mask, axis=-1)
+        choice = None
+        if teach is not None:
+            team = jax.vmap(lambda k, o, s: teach.act(k, None, o, s, dyn)[1])
+            choice = jax.lax.cond(teacher.weight > 0, team, lambda *_: jnp.zeros_like(action),
+                                  act_keys, runner.obs, runner.env_state)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
             dyn, reset_obs, reset_state, max_resets, pool_used)
@@ -199,7 +212,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
             acted=info.acted.reshape(-1))
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(decided, runner.memory, action, log_prob, value, reward,
-                                terminal, active)
+                                terminal, active, choice)
         return (_split(Runner(state, obs, memory, ret), data), pool_used), (transition, stats)
 
     (runner, _), (transitions, stats) = jax.lax.scan(
@@ -214,6 +227,16 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         / jnp.maximum(weights.sum(), 1),
     )
     return runner, _split(transitions, data, axis=1), summary
+
+
+def _teacher_planner(cfg: Config, params: EnvParams):
+    """The planner whose choices the rollout stores for the loss (ppo.teacher), or None
+    where the loss derives the choice from the observation itself."""
+    if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher != "nbv_ahead":
+        return None
+    e = cfg.eval
+    return lookahead.nbv_ahead_planner(params, e.nbv_team_facade, e.nbv_ahead_discount,
+                                       e.nbv_ahead_branches, e.nbv_ahead_flights)
 
 
 def gae(transitions: Transition, last_value, discount: float, lam: float):
@@ -252,8 +275,9 @@ def advantage_moments(weight, advantages, blocks: int, data: DataParallel | None
 
 @struct.dataclass
 class Teacher:
-    """Kickstarting: the loss adds `weight` x the cross-entropy from the next-best-view
-    choice (`layout.nbv_score` with facade weight `facade`) on each decided observation."""
+    """Kickstarting: the loss adds `weight` x the cross-entropy from the teacher's choice:
+    the next-best-view choice (`layout.nbv_score` with facade weight `facade`) on each
+    decided observation, or the choices the rollout stored (`Transition.teacher`)."""
 
     weight: jax.Array | float  # () float32, this update's weight
     facade: float = struct.field(pytree_node=False, default=0.0)
@@ -289,8 +313,8 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     value_clipped = batch.value + jnp.clip(value - batch.value, -cfg.clip, cfg.clip)
     value_loss = 0.5 * share(jnp.maximum((value - targets) ** 2, (value_clipped - targets) ** 2))
     entropy = share(dist.entropy())
-    choice = layout.masked_argmax(layout.nbv_score(batch.obs.features, teacher.facade),
-                                  batch.obs.mask, jnp)
+    choice = batch.teacher if batch.teacher is not None else layout.masked_argmax(
+        layout.nbv_score(batch.obs.features, teacher.facade), batch.obs.mask, jnp)
     imitation = -share(jnp.where(jnp.any(batch.obs.mask, axis=-1), dist.log_prob(choice), 0.0))
     total = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
              + teacher.weight * imitation)

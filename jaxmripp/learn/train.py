@@ -112,15 +112,14 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
     def one_update(dyn, carry, _):
         state, runner = carry
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
+        teacher = ppo.Teacher.at(cfg.ppo, state.update, cfg.eval.nbv_team_facade)
         runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
-                                                 cfg, env_params, dyn, data)
+                                                 cfg, env_params, dyn, data, teacher)
         last_value = ppo.values(network, state.params, runner.memory, runner.obs,
                                 cfg.train.blocks, data)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
-                                               cfg.ppo, cfg.train.blocks, data,
-                                               ppo.Teacher.at(cfg.ppo, state.update,
-                                                              cfg.eval.nbv_team_facade))
+                                               cfg.ppo, cfg.train.blocks, data, teacher)
         active = transitions.active.astype(jnp.float32)
         metrics = dict(losses, episodes=stats.episodes, discovered_sum=stats.discovered,
                        return_sum=stats.episode_return, reward_parts=stats.reward_parts,

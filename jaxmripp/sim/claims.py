@@ -24,8 +24,10 @@ from jaxmripp.sim import comms, geometry, view
 from jaxmripp.sim.observation import VIEW_COLUMNS, Observation, view_columns
 from jaxmripp.sim.types import EnvState
 
-# decide(i, robot i's observation) -> (action () int32, anything else to stack over robots)
-Decide = Callable[[jax.Array, Observation], tuple[jax.Array, Any]]
+# decide(i, robot i's observation, robot i's map (G, G, G) with its peers' claims counted
+# as seen: what the observation's VIEW columns were computed on) -> (action () int32,
+# anything else to stack over robots)
+Decide = Callable[[jax.Array, Observation, jax.Array], tuple[jax.Array, Any]]
 
 
 def in_turn(decide: Decide, obs: Observation, state: EnvState, sensor: SensorConfig,
@@ -47,7 +49,7 @@ def in_turn(decide: Decide, obs: Observation, state: EnvState, sensor: SensorCon
                                sensor, size, shell_outer)
         mine = jax.tree.map(lambda x: x[i], obs)
         mine = mine.replace(features=mine.features.at[:, VIEW_COLUMNS].set(columns))
-        action, extra = decide(i, mine)
+        action, extra = decide(i, mine, occupancy)
         seen = view.unknown_in_view(occupancy, state.building_top[i], c.position[i, action],
                                     c.heading[i, action], sensor, size)
         seen = jnp.where(jnp.any(mine.mask), seen, outside)

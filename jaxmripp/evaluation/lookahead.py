@@ -1,0 +1,157 @@
+"""`nbv_ahead`: next-best view in turn, looking more than one flight ahead.
+
+`nbv_team` takes the candidate with the most view gain per unit of flight cost, one step
+at a time. A pose that sees a little but opens onto a rich view next is worth more than
+that score says, and one that sees much but leads nowhere less. Here robot i (deciding in
+turn, on its map with its peers' claimed views counted as seen, `jaxmripp.sim.claims`)
+values each of its `branches` best candidates `a` by its own rate or the best rate of a
+sequence of up to `flights` flights starting with it, whichever is larger; for two,
+
+    v(a) = max(g(a) / c(a), max_b (g(a) + discount g(b | a)) / (c(a) + discount c(b))),
+
+where g is `nbv_team`'s gain (unknown voxels in view plus the facade weight times the
+unknown facade voxels in view, `jaxmripp.spec.view`), c the flight cost, and b ranges
+over candidates drawn around `a` as the environment would draw them
+(`jaxmripp.sim.candidates.sample`, with the budget left after `a`), scored on the map with
+`a`'s view counted as seen. A third flight adds discount^2 g(c | a, b) and discount^2 c(c)
+for the `branches` best b, and so on. Taking the larger of the rates lets a rich view
+count even where what follows it is poor (the robot will choose again there). Costs enter
+as `nbv_team`'s do (`view.per_cost`), so with discount 0 the choice is `nbv_team`'s. The
+other candidates keep -inf: a candidate outside the one-step top `branches` is never
+taken. The discount, `branches` and `flights` are tuned on training-layout worlds
+(docs/baselines.md).
+
+Cost per robot and step: branches + branches^2 + ... + branches^(flights - 1) candidate
+draws, each with the view gain of K positions (an observation's view gain is one).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from jaxmripp.evaluation import baselines
+from jaxmripp.sim import candidates as cands
+from jaxmripp.sim import claims, geometry, view
+from jaxmripp.sim.episode import Planner
+from jaxmripp.sim.observation import Observation
+from jaxmripp.sim.params import DynamicParams, EnvParams
+from jaxmripp.sim.types import EnvState
+from jaxmripp.spec import layout
+
+_UNKNOWN = layout.FEATURES.index("view_unknown")
+_FACADE = layout.FEATURES.index("view_facade")
+
+
+def gain(unknown, facade, facade_weight):
+    """nbv_team's view gain before the cost: unknown + facade_weight x facade."""
+    return unknown + facade_weight * facade
+
+
+@struct.dataclass
+class Search:
+    """What one robot's lookahead holds fixed: the peers it avoids and the scoring."""
+
+    params: EnvParams = struct.field(pytree_node=False)
+    dyn: DynamicParams
+    others: jax.Array  # (N, 3) all robots' positions
+    heard: jax.Array  # (N,) bool the robots this one hears
+    facade_weight: float = struct.field(pytree_node=False)
+    discount: jax.Array | float
+    branches: int = struct.field(pytree_node=False)
+
+
+def next_flight(search: Search, occupancy, top, position, heading, budget_left, key):
+    """What a robot could do after reaching the pose (position (3,), heading ()) with
+    `budget_left`: its map (G, G, G) with that pose's view counted as seen, the candidates
+    drawn around the pose ((L,) as `cands.sample` gives them) and their gains (L,) on it."""
+    params, size = search.params, search.params.size
+    seen = view.unknown_in_view(occupancy, top, position, heading, params.sensor, size)
+    after = occupancy.reshape(-1).at[seen].set(geometry.FREE, mode="drop").reshape(
+        occupancy.shape)
+    following = cands.sample(key, position, heading, budget_left, after, search.others,
+                             search.heard, params.candidates, params.safety.flight,
+                             search.dyn.turn_cost, search.dyn.collision_distance, size)
+    unknown, facade = view.view_gain(after, top, following.position[::geometry.N_HEADINGS],
+                                     params.sensor, size)
+    return after, following, gain(unknown.reshape(-1), facade.reshape(-1), search.facade_weight)
+
+
+def continuation(search: Search, occupancy, top, position, heading, budget_left, gained,
+                 cost, weight, key, flights: int):
+    """The best rate (gained + weighted gains) / (cost + weighted costs) over 1 to `flights`
+    more flights from a pose reached with `gained` and `cost` so far, the next flight
+    weighted `weight` and each later one `discount` times the one before; -inf where no
+    flight is affordable. Beyond the first flight only the `branches` best are followed."""
+    shell = search.params.candidates.shell[1]
+    key_draw, key_deeper = jax.random.split(key) if flights > 1 else (key, None)
+    after, following, gains = next_flight(search, occupancy, top, position, heading,
+                                          budget_left, key_draw)
+    rates = jnp.where(following.valid, view.per_cost(gained + weight * gains,
+                                                     cost + weight * following.cost, shell),
+                      -jnp.inf)
+    best = jnp.max(rates)
+    if flights == 1:
+        return best
+    top_rate, order = jax.lax.top_k(rates, search.branches)
+    deeper = jax.vmap(lambda j, k: continuation(
+        search, after, top, following.position[j], following.heading[j],
+        budget_left - following.cost[j], gained + weight * gains[j],
+        cost + weight * following.cost[j], weight * search.discount, k, flights - 1))(
+        order, jax.random.split(key_deeper, search.branches))
+    return jnp.maximum(best, jnp.max(jnp.where(jnp.isfinite(top_rate), deeper, -jnp.inf)))
+
+
+def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
+                     candidates: cands.Candidates, budget_left, flights: int):
+    """(L,) v(a) of the module docstring for robot i's `branches` best candidates by
+    nbv_team's score, -inf for the others and for infeasible ones. `mine` is the robot's
+    observation (L, F) on `occupancy`, its map with its peers' claims counted as seen."""
+    shell = search.params.candidates.shell[1]
+    first_gain = gain(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
+                      search.facade_weight)
+    rate = view.per_cost(first_gain, candidates.cost, shell)
+    top_rate, order = jax.lax.top_k(jnp.where(mine.mask, rate, -jnp.inf), search.branches)
+
+    def value(first, key):
+        later = continuation(search, occupancy, top, candidates.position[first],
+                             candidates.heading[first], budget_left - candidates.cost[first],
+                             first_gain[first], candidates.cost[first], search.discount, key,
+                             flights - 1)
+        return jnp.maximum(rate[first], later)
+
+    values = jax.vmap(value)(order, jax.random.split(key, search.branches))
+    values = jnp.where(jnp.isfinite(top_rate), values, -jnp.inf)
+    return jnp.full(rate.shape, -jnp.inf).at[order].set(values)
+
+
+def nbv_ahead_planner(params: EnvParams, facade_weight: float = 2.0, discount=2.0,
+                      branches: int = 8, flights: int = 2, name: str = "nbv_ahead") -> Planner:
+    """Robots in index order, each taking the candidate with the largest
+    `lookahead_values` over `flights` flights (ties broken at random, as nbv_team's)."""
+    shell = params.candidates.shell[1]
+    if not 1 <= branches <= params.candidates.count:
+        raise ValueError(f"nbv_ahead: branches = {branches}; allowed: 1 to the candidate "
+                         f"count {params.candidates.count}")
+    if flights < 2:
+        raise ValueError(f"nbv_ahead: flights = {flights}; allowed: 2 or more (1 is nbv_team)")
+
+    def act(key, memory, obs: Observation, state: EnvState, dyn: DynamicParams):
+        key_jitter, key_ahead = jax.random.split(key)
+        jitter = 1e-6 * jax.random.uniform(key_jitter, obs.mask.shape)
+        keys = jax.random.split(key_ahead, obs.mask.shape[0])
+
+        def decide(i, mine, occupancy):
+            search = Search(params, dyn, state.position, state.heard[i], facade_weight,
+                            discount, branches)
+            c = jax.tree.map(lambda x: x[i], state.candidates)
+            values = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i],
+                                      c, state.budget_left[i], flights)
+            return layout.masked_argmax(values + jitter[i], mine.mask, jnp), None
+
+        _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell,
+                                       params.radio.relay)
+        return memory, actions
+
+    return Planner(name, baselines.no_memory, act)

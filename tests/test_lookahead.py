@@ -1,0 +1,167 @@
+"""nbv_ahead (jaxmripp.evaluation.lookahead): its two-flight values against a NumPy
+reference (a brute-force ray walk for the first view, the runtime's view gain for the
+second), its one-step limit (discount 0 chooses as nbv_team) and a jitted act on reset
+states (feasible actions, one trace).
+
+One compilation per jitted function below, on the smoke world (G = 20, 6 positions).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import chex
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp import config
+from jaxmripp.evaluation import baselines, evaluate, lookahead
+from jaxmripp.runtime import view as runtime_view
+from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, voxel_of
+from jaxmripp.sim import env as envmod
+from jaxmripp.spec import layout
+from jaxmripp.spec import view as spec
+
+ROOT = Path(__file__).resolve().parents[1]
+# truncate: the reset maps know little free space, and under known_free few second
+# flights would be feasible.
+CFG = config.load(ROOT / "configs" / "smoke.yaml", ["safety.flight=truncate"])
+PARAMS = evaluate.eval_params(CFG, 4.0)
+DYN = evaluate.eval_dynamic(CFG, 4.0, radio_range=math.inf)
+FACADE, BRANCHES, ENVS = 2.0, 5, 3
+
+
+@chex.assert_max_traces(n=1)
+def _reset_and_value(key, discount):
+    """A reset env, robot 0's two-flight values (it decides first: its own map) and, for
+    each of its branches, the second candidates drawn with the key the values used."""
+    key_reset, key_ahead = jax.random.split(key)
+    obs, state = envmod.reset(key_reset, PARAMS, DYN)
+    mine = jax.tree.map(lambda x: x[0], obs)
+    c = jax.tree.map(lambda x: x[0], state.candidates)
+    search = lookahead.Search(PARAMS, DYN, state.position, state.heard[0], FACADE, discount,
+                              BRANCHES)
+    occupancy, top = state.occupancy[0], state.building_top[0]
+    values = lookahead.lookahead_values(search, mine, occupancy, top, key_ahead, c,
+                                        state.budget_left[0], flights=2)
+    first_gain = lookahead.gain(mine.features[:, layout.FEATURES.index("view_unknown")],
+                                mine.features[:, layout.FEATURES.index("view_facade")], FACADE)
+    rate = jnp.where(mine.mask, first_gain * (PARAMS.candidates.shell[1] / jnp.maximum(
+        c.cost, spec.COST_FLOOR)), -jnp.inf)
+    _, order = jax.lax.top_k(rate, BRANCHES)
+    second = jax.vmap(lambda j, k: lookahead.next_flight(
+        search, occupancy, top, c.position[j], c.heading[j], state.budget_left[0] - c.cost[j],
+        k)[1])(order, jax.random.split(key_ahead, BRANCHES))
+    return obs, state, values, first_gain, order, second
+
+
+@pytest.fixture(scope="module")
+def valued():
+    run = jax.jit(jax.vmap(_reset_and_value, in_axes=(0, None)))
+    keys = jax.random.split(jax.random.PRNGKey(3), ENVS)
+    return jax.tree.map(np.asarray, run(keys, jnp.float32(1.0)))
+
+
+def _seen(codes, position, heading):
+    """Flat indices of the unknown voxels a pose sees: each gain ray walked sample by
+    sample until it leaves the grid or meets an occupied voxel (jaxmripp.spec.view)."""
+    size = PARAMS.size
+    offsets, _ = spec.gain_table(PARAMS.sensor.fov_deg, PARAMS.sensor.range, size)
+    camera = voxel_of(np.asarray(position, np.float32)[None], size)[0]
+    seen = set()
+    for ray in offsets[heading]:
+        for offset in ray:
+            v = camera + offset
+            if np.any(v < 0) or np.any(v >= size):
+                break
+            flat = (v[0] * size + v[1]) * size + v[2]
+            if codes[flat] == OCCUPIED:
+                break
+            if codes[flat] == UNKNOWN:
+                seen.add(int(flat))
+    return np.fromiter(seen, np.int64)
+
+
+def test_two_flight_values_match_a_numpy_reference(valued):
+    obs, state, values, first_gain, order, second = valued
+    shell = PARAMS.candidates.shell[1]
+    lo, hi = PARAMS.candidates.shell
+    checked = 0
+    for e in range(ENVS):
+        mask = obs.mask[e, 0]
+        codes = state.occupancy[e, 0].reshape(-1)
+        c = {name: getattr(state.candidates, name)[e, 0] for name in ("position", "heading",
+                                                                       "cost")}
+        ranked = {int(j): r for r, j in enumerate(order[e]) if mask[j]}
+        for j in range(mask.size):
+            if j not in ranked:  # infeasible or outside the branches: never taken
+                assert values[e, j] == -np.inf
+                continue
+            s = jax.tree.map(lambda x: x[e, ranked[j]], second)
+            after = codes.copy()
+            after[_seen(codes, c["position"][j], c["heading"][j])] = FREE
+            unknown, facade = runtime_view.view_gain(
+                after, state.building_top[e, 0], s.position, s.heading,
+                PARAMS.sensor.fov_deg, PARAMS.sensor.range, PARAMS.size)
+            g1 = np.float64(first_gain[e, j])
+            both = (g1 + unknown + FACADE * facade) * shell / np.maximum(
+                c["cost"][j] + s.cost, spec.COST_FLOOR)
+            alone = g1 * shell / max(c["cost"][j], spec.COST_FLOOR)
+            expect = max(alone, both[s.valid].max()) if s.valid.any() else alone
+            np.testing.assert_allclose(values[e, j], expect, rtol=2e-6, atol=1e-9)
+            # Second flights start at the first pose, cost what is left at most.
+            gap = np.linalg.norm(s.position[s.valid] - c["position"][j], axis=-1)
+            assert np.all((gap == 0) | ((gap >= lo - 1e-6) & (gap <= hi + 1e-6)))
+            assert np.all(s.cost[s.valid] <= state.budget_left[e, 0] - c["cost"][j] + 1e-6)
+            checked += int(s.valid.any())
+    assert checked >= ENVS  # the reference was compared on real second flights
+
+
+@chex.assert_max_traces(n=1)
+def _choices(key, discount):
+    """A reset env and nbv_ahead's choices looking two and three flights ahead."""
+    obs, state = envmod.reset(key, PARAMS, DYN)
+    chosen = [lookahead.nbv_ahead_planner(PARAMS, FACADE, discount, BRANCHES, flights).act(
+        key, None, obs, state, DYN)[1] for flights in (2, 3)]
+    return obs, jnp.stack(chosen)
+
+
+@pytest.fixture(scope="module")
+def chosen():
+    run = jax.jit(jax.vmap(_choices, in_axes=(0, None)))
+    keys = jax.random.split(jax.random.PRNGKey(4), 8)
+    return {d: jax.tree.map(np.asarray, run(keys, jnp.float32(d))) for d in (0.0, 1.0)}
+
+
+def test_discount_zero_chooses_as_nbv_team_and_all_choices_are_feasible(chosen):
+    obs, actions = chosen[0.0]  # actions (worlds, flights 2 and 3, robots)
+    robot0 = obs.features[:, 0]  # robot 0 decides on its own observation
+    score = np.asarray(baselines.nbv_scores(robot0, FACADE))
+    best = np.where(obs.mask[:, 0], score, -np.inf).max(axis=-1)
+    for by_flights in (actions[:, 0], actions[:, 1]):
+        taken = np.take_along_axis(score, by_flights[:, :1], axis=-1)[:, 0]
+        np.testing.assert_allclose(taken, best, rtol=1e-6)
+    for d, (obs, actions) in chosen.items():
+        for by_flights in (actions[:, 0], actions[:, 1]):
+            picked = np.take_along_axis(obs.mask, by_flights[..., None], axis=-1)[..., 0]
+            assert np.all(picked | ~obs.mask.any(-1)), d
+
+
+def test_looking_ahead_changes_some_choices(chosen):
+    """With discount 1 later flights matter: on 8 worlds x 2 robots some choice differs
+    from the one-step choice, for two flights and for three (else dead code)."""
+    for flights in (0, 1):
+        assert np.any(chosen[0.0][1][:, flights] != chosen[1.0][1][:, flights])
+
+
+def test_branches_beyond_the_candidates_are_refused():
+    with pytest.raises(ValueError, match="branches = 999; allowed: 1 to the candidate count"):
+        lookahead.nbv_ahead_planner(PARAMS, FACADE, 1.0, 999)
+    with pytest.raises(ValueError, match="flights = 1; allowed: 2 or more"):
+        lookahead.nbv_ahead_planner(PARAMS, FACADE, 1.0, 4, 1)
+    with pytest.raises(config.ConfigError, match="eval.nbv_ahead_branches"):
+        config.load(ROOT / "configs" / "smoke.yaml", ["eval.nbv_ahead_branches=25",
+                                                      "eval.planners=[nbv_ahead]"])
