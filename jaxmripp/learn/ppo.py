@@ -171,7 +171,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
     `params` is static (jit it as a closure or static argument), `dyn` may be traced. With
     ppo.teacher = nbv_ahead the transitions carry that planner's choices while
-    `teacher.weight` > 0 (zeros after: the loss then ignores them)."""
+    `teacher.weight` > 0 (zeros after, which the loss then weighs by 0)."""
     envs = cfg.train.envs
     teach = _teacher_planner(cfg, params) if teacher is not None else None
     key_pool, key_steps = jax.random.split(key)
