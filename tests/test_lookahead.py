@@ -1,6 +1,6 @@
-"""nbv_ahead (jaxmripp.evaluation.lookahead): its two-flight values against a NumPy
-reference (a brute-force ray walk for the first view, the runtime's view gain for the
-second), its one-step limit (discount 0 chooses as nbv_team) and a jitted act on reset
+"""nbv_ahead (jaxmripp.sim.lookahead, baselines.nbv_ahead_planner): its two-flight values
+against a NumPy reference (a brute-force ray walk for the first view, the runtime's view
+gain for the second), its one-step limit (discount 0 chooses as nbv_team) and a jitted act on reset
 states (feasible actions, one trace).
 
 One compilation per jitted function below, on the smoke world (G = 20, 6 positions).
@@ -18,10 +18,10 @@ import numpy as np
 import pytest
 
 from jaxmripp import config
-from jaxmripp.evaluation import baselines, evaluate, lookahead
+from jaxmripp.evaluation import baselines, evaluate
 from jaxmripp.runtime import view as runtime_view
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, voxel_of
-from jaxmripp.sim import env as envmod
+from jaxmripp.sim import env as envmod, lookahead
 from jaxmripp.spec import layout
 from jaxmripp.spec import view as spec
 
@@ -124,7 +124,7 @@ def test_two_flight_values_match_a_numpy_reference(valued):
 def _choices(key, discount):
     """A reset env and nbv_ahead's choices looking two and three flights ahead."""
     obs, state = envmod.reset(key, PARAMS, DYN)
-    chosen = [lookahead.nbv_ahead_planner(PARAMS, FACADE, discount, BRANCHES, flights).act(
+    chosen = [baselines.nbv_ahead_planner(PARAMS, FACADE, discount, BRANCHES, flights).act(
         key, None, obs, state, DYN)[1] for flights in (2, 3)]
     return obs, jnp.stack(chosen)
 
@@ -159,9 +159,9 @@ def test_looking_ahead_changes_some_choices(chosen):
 
 def test_branches_beyond_the_candidates_are_refused():
     with pytest.raises(ValueError, match="branches = 999; allowed: 1 to the candidate count"):
-        lookahead.nbv_ahead_planner(PARAMS, FACADE, 1.0, 999)
+        baselines.nbv_ahead_planner(PARAMS, FACADE, 1.0, 999)
     with pytest.raises(ValueError, match="flights = 1; allowed: 2 or more"):
-        lookahead.nbv_ahead_planner(PARAMS, FACADE, 1.0, 4, 1)
+        baselines.nbv_ahead_planner(PARAMS, FACADE, 1.0, 4, 1)
     with pytest.raises(config.ConfigError, match="eval.nbv_ahead_branches"):
         config.load(ROOT / "configs" / "smoke.yaml", ["eval.nbv_ahead_branches=25",
                                                       "eval.planners=[nbv_ahead]"])

@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import claims, comms, geometry, gp, sensing
+from jaxmripp.sim import claims, comms, geometry, gp, lookahead, sensing
 from jaxmripp.sim.episode import Planner
 from jaxmripp.spec import layout
 from jaxmripp.sim.observation import FEATURES, Observation
@@ -195,5 +195,17 @@ def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team")
         _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell,
                                        params.radio.relay)
         return memory, actions
+
+    return Planner(name, no_memory, act)
+
+
+def nbv_ahead_planner(params, facade_weight: float = 2.0, discount=3.0, branches: int = 32,
+                      flights: int = 2, name: str = "nbv_ahead") -> Planner:
+    """Next-best view in turn looking `flights` flights ahead (`jaxmripp.sim.lookahead`)."""
+    lookahead.check(params, branches, flights)
+
+    def act(key, memory, obs, state, dyn):
+        return memory, lookahead.choose_in_turn(key, obs, state, dyn, params, facade_weight,
+                                                discount, branches, flights)
 
     return Planner(name, no_memory, act)

@@ -27,7 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmripp.config import Config
-from jaxmripp.evaluation import baselines, lookahead
+from jaxmripp.evaluation import baselines
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_counts
 from jaxmripp.evaluation.planners import eval_setting
 from jaxmripp.parallel.mesh import data_parallel
@@ -205,7 +205,7 @@ def tune_nbv_ahead(cfg: Config, discounts, branches: int, flights: int, worlds: 
 
 
 def _nbv_ahead_of(weights, params, facade, branches, flights):
-    return lookahead.nbv_ahead_planner(params, facade, weights[0], branches, flights)
+    return baselines.nbv_ahead_planner(params, facade, weights[0], branches, flights)
 
 
 def _rig_of(weights, params, iterations, max_depth, kappa):

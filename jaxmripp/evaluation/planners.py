@@ -78,9 +78,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "nbv_team":
         return baselines.nbv_team_planner(params, get("nbv_team_facade"))
     if name == "nbv_ahead":
-        from jaxmripp.evaluation.lookahead import nbv_ahead_planner  # noqa: PLC0415
-
-        return nbv_ahead_planner(params, get("nbv_team_facade"), get("nbv_ahead_discount"),
+        return baselines.nbv_ahead_planner(params, get("nbv_team_facade"), get("nbv_ahead_discount"),
                                  get("nbv_ahead_branches"), get("nbv_ahead_flights"))
     if name == "oracle":
         return baselines.oracle_planner(params)

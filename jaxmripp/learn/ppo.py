@@ -22,8 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.evaluation import lookahead
-from jaxmripp.sim import claims, env as envmod
+from jaxmripp.sim import claims, env as envmod, lookahead
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -173,7 +172,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
     ppo.teacher = nbv_ahead the transitions carry that planner's choices while
     `teacher.weight` > 0 (zeros after, which the loss then weighs by 0)."""
     envs = cfg.train.envs
-    teach = _teacher_planner(cfg, params) if teacher is not None else None
+    teach = _teacher(cfg, params) if teacher is not None else None
     key_pool, key_steps = jax.random.split(key)
     reset_obs, reset_state = _split(jax.vmap(envmod.reset, in_axes=(0, None, None))(
         _split(jax.random.split(key_pool, envs), data), params, dyn), data)
@@ -194,7 +193,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         active = jnp.any(runner.obs.mask, axis=-1)
         choice = None
         if teach is not None:
-            team = jax.vmap(lambda k, o, s: teach.act(k, None, o, s, dyn)[1])
+            team = jax.vmap(lambda k, o, s: teach(k, o, s, dyn))
             choice = jax.lax.cond(teacher.weight > 0, team, lambda *_: jnp.zeros_like(action),
                                   act_keys, runner.obs, runner.env_state)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
@@ -229,14 +228,17 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
     return runner, _split(transitions, data, axis=1), summary
 
 
-def _teacher_planner(cfg: Config, params: EnvParams):
-    """The planner whose choices the rollout stores for the loss (ppo.teacher), or None
-    where the loss derives the choice from the observation itself."""
+def _teacher(cfg: Config, params: EnvParams):
+    """choose(key, obs, state, dyn) -> the team's choices (N,) that the rollout stores for
+    the loss (ppo.teacher = nbv_ahead), or None where the loss derives the choice from the
+    observation itself."""
     if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher != "nbv_ahead":
         return None
     e = cfg.eval
-    return lookahead.nbv_ahead_planner(params, e.nbv_team_facade, e.nbv_ahead_discount,
-                                       e.nbv_ahead_branches, e.nbv_ahead_flights)
+    lookahead.check(params, e.nbv_ahead_branches, e.nbv_ahead_flights)
+    return lambda key, obs, state, dyn: lookahead.choose_in_turn(
+        key, obs, state, dyn, params, e.nbv_team_facade, e.nbv_ahead_discount,
+        e.nbv_ahead_branches, e.nbv_ahead_flights)
 
 
 def gae(transitions: Transition, last_value, discount: float, lam: float):

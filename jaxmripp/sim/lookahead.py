@@ -1,4 +1,5 @@
-"""`nbv_ahead`: next-best view in turn, looking more than one flight ahead.
+"""Next-best view in turn, looking more than one flight ahead (the `nbv_ahead` baseline
+and the lookahead teacher of `ppo.teacher`).
 
 `nbv_team` takes the candidate with the most view gain per unit of flight cost, one step
 at a time. A pose that sees a little but opens onto a rich view next is worth more than
@@ -31,10 +32,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from jaxmripp.evaluation import baselines
 from jaxmripp.sim import candidates as cands
 from jaxmripp.sim import claims, geometry, view
-from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
@@ -126,32 +125,34 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
     return jnp.full(rate.shape, -jnp.inf).at[order].set(values)
 
 
-def nbv_ahead_planner(params: EnvParams, facade_weight: float = 2.0, discount=2.0,
-                      branches: int = 8, flights: int = 2, name: str = "nbv_ahead") -> Planner:
-    """Robots in index order, each taking the candidate with the largest
-    `lookahead_values` over `flights` flights (ties broken at random, as nbv_team's)."""
-    shell = params.candidates.shell[1]
+def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
+                   params: EnvParams, facade_weight: float, discount, branches: int,
+                   flights: int) -> jax.Array:
+    """The team's choices (N,) int32: robots in index order (`claims.in_turn`), each taking
+    the candidate with the largest `lookahead_values` over `flights` flights (ties broken
+    at random, as nbv_team's). One environment: callers vmap."""
+    check(params, branches, flights)
+    key_jitter, key_ahead = jax.random.split(key)
+    jitter = 1e-6 * jax.random.uniform(key_jitter, obs.mask.shape)
+    keys = jax.random.split(key_ahead, obs.mask.shape[0])
+
+    def decide(i, mine, occupancy):
+        search = Search(params, dyn, state.position, state.heard[i], facade_weight, discount,
+                        branches)
+        c = jax.tree.map(lambda x: x[i], state.candidates)
+        values = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i], c,
+                                  state.budget_left[i], flights)
+        return layout.masked_argmax(values + jitter[i], mine.mask, jnp), None
+
+    _, actions, _ = claims.in_turn(decide, obs, state, params.sensor,
+                                   params.candidates.shell[1], params.radio.relay)
+    return actions
+
+
+def check(params: EnvParams, branches: int, flights: int) -> None:
+    """One clear error for settings the search cannot use."""
     if not 1 <= branches <= params.candidates.count:
         raise ValueError(f"nbv_ahead: branches = {branches}; allowed: 1 to the candidate "
                          f"count {params.candidates.count}")
     if flights < 2:
         raise ValueError(f"nbv_ahead: flights = {flights}; allowed: 2 or more (1 is nbv_team)")
-
-    def act(key, memory, obs: Observation, state: EnvState, dyn: DynamicParams):
-        key_jitter, key_ahead = jax.random.split(key)
-        jitter = 1e-6 * jax.random.uniform(key_jitter, obs.mask.shape)
-        keys = jax.random.split(key_ahead, obs.mask.shape[0])
-
-        def decide(i, mine, occupancy):
-            search = Search(params, dyn, state.position, state.heard[i], facade_weight,
-                            discount, branches)
-            c = jax.tree.map(lambda x: x[i], state.candidates)
-            values = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i],
-                                      c, state.budget_left[i], flights)
-            return layout.masked_argmax(values + jitter[i], mine.mask, jnp), None
-
-        _, actions, _ = claims.in_turn(decide, obs, state, params.sensor, shell,
-                                       params.radio.relay)
-        return memory, actions
-
-    return Planner(name, baselines.no_memory, act)
