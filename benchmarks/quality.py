@@ -2,8 +2,9 @@
 non-learning planner.
 
 N = 3 robots, team budget B = 10, W held-out random-layout worlds x T trials, radio range
-rho = inf and 0.1; planners: the policy, nbv_ahead, nbv_team, nbv, coordinated, greedy, mcts, rig,
-random and the oracle (an upper reference that knows the windows, never a "baseline").
+rho = inf and 0.1; planners: the policy, nbv_ahead, nbv_team, nbv, coordinated, greedy,
+mcts, rig, random and the oracle (an upper reference that knows the windows, never a
+"baseline").
 Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's world
 (configs/eval_paper_world.yaml, the same protocol). Figures (JSON lines):
 
