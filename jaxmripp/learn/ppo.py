@@ -235,7 +235,6 @@ def _teacher(cfg: Config, params: EnvParams):
     if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher != "nbv_ahead":
         return None
     e = cfg.eval
-    lookahead.check(params, e.nbv_ahead_branches, e.nbv_ahead_flights)
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
         key, obs, state, dyn, params, e.nbv_team_facade, e.nbv_ahead_discount,
         e.nbv_ahead_branches, e.nbv_ahead_flights)
