@@ -236,6 +236,21 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     picked = np.take_along_axis(log_softmax, stored[act][..., None], -1)[..., 0]
     assert np.any(stored[act] != choice[act])
     np.testing.assert_allclose(float(parts["imitation"]), -picked.mean(), rtol=1e-4)
+    # Samples the teacher did not decide (NO_CHOICE) add nothing; all of them: 0, not inf.
+    undecided = stored.copy()
+    undecided[0, 1] = ppo.NO_CHOICE
+    kept = act.copy()
+    kept[0, 1] = False
+    picked = np.take_along_axis(log_softmax, undecided[act][..., None], -1)[..., 0]
+    _, parts = ppo.loss_fn(params, trainer.network,
+                           batch.replace(teacher=jnp.asarray(undecided)), zeros, value,
+                           moments, cfg.ppo, ppo.Teacher.at(cfg.ppo, 0, facade))
+    np.testing.assert_allclose(float(parts["imitation"]),
+                               -picked[kept[act]].sum() / act.sum(), rtol=1e-4)
+    _, parts = ppo.loss_fn(params, trainer.network,
+                           batch.replace(teacher=jnp.full(stored.shape, ppo.NO_CHOICE)),
+                           zeros, value, moments, cfg.ppo, ppo.Teacher.at(cfg.ppo, 0, facade))
+    assert float(parts["imitation"]) == 0.0
 
     decaying = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                                   "ppo.teacher_updates=8"]).ppo
@@ -247,7 +262,7 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
 def test_the_lookahead_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
     """ppo.teacher = nbv_ahead: the transitions carry that planner's choices, feasible on
     the observations, and some differ from the one-step NBV choice; with the weight at 0
-    the rollout skips the planner and stores zeros."""
+    the rollout skips the planner and stores NO_CHOICE."""
     cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
                                              "eval.nbv_ahead_branches=4"])
     trainer = trainmod.Trainer.build(cfg)
@@ -263,7 +278,7 @@ def test_the_lookahead_teacher_is_stored_by_the_rollout_while_its_weight_lasts()
     nbv = layout.masked_argmax(layout.nbv_score(taught.obs.features, cfg.eval.nbv_team_facade),
                                taught.obs.mask)
     assert np.any((nbv != taught.teacher) & taught.active)
-    assert not np.any(np.asarray(run(jnp.float32(0.0)).teacher))
+    assert np.all(np.asarray(run(jnp.float32(0.0)).teacher) == ppo.NO_CHOICE)
 
 
 def test_gae_matches_a_hand_computed_example():

@@ -32,6 +32,9 @@ from jaxmripp.parallel.mesh import DataParallel
 from jaxmripp.spec import layout
 
 
+NO_CHOICE = -1  # Transition.teacher where the teacher did not decide
+
+
 @struct.dataclass
 class Transition:
     """Leading axes (T, E, N)."""
@@ -44,8 +47,8 @@ class Transition:
     reward: jax.Array  # (...,)
     terminal: jax.Array  # (...,) bool: the robot's episode ended with this step
     active: jax.Array  # (...,) bool: the robot could act (done robots give no samples)
-    # (...,) int32 the teacher's choice (ppo.teacher = nbv_ahead); None: the loss takes
-    # the next-best-view choice on `obs`
+    # (...,) int32 the teacher's choice (ppo.teacher = nbv_ahead), NO_CHOICE where the
+    # teacher did not decide; None: the loss takes the next-best-view choice on `obs`
     teacher: jax.Array | None = None
 
 
@@ -170,7 +173,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
     `params` is static (jit it as a closure or static argument), `dyn` may be traced. With
     ppo.teacher = nbv_ahead the transitions carry that planner's choices while
-    `teacher.weight` > 0 (zeros after, which the loss then weighs by 0)."""
+    `teacher.weight` > 0 (NO_CHOICE after, which the loss leaves out)."""
     envs = cfg.train.envs
     teach = _teacher(cfg, params) if teacher is not None else None
     key_pool, key_steps = jax.random.split(key)
@@ -194,7 +197,8 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         choice = None
         if teach is not None:
             team = jax.vmap(lambda k, o, s: teach(k, o, s, dyn))
-            choice = jax.lax.cond(teacher.weight > 0, team, lambda *_: jnp.zeros_like(action),
+            choice = jax.lax.cond(teacher.weight > 0, team,
+                                  lambda *_: jnp.full_like(action, NO_CHOICE),
                                   act_keys, runner.obs, runner.env_state)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
@@ -301,7 +305,8 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     """The clipped PPO loss of the samples in `batch` as their share of a minibatch's
     loss (sums over `batch` divided by the minibatch's `moments.count`), so the shares of
     a minibatch's blocks add up to its loss; returns (loss, its parts). The part
-    `imitation` is `teacher`'s cross-entropy, in the loss x `teacher.weight`."""
+    `imitation` is `teacher`'s cross-entropy over the samples it decided, in the loss x
+    `teacher.weight`."""
     _, logits, value = apply_batched(network, net_params, batch.memory, batch.obs)
     dist = distribution(logits, batch.obs.mask)
     log_prob = dist.log_prob(batch.action)
@@ -316,7 +321,8 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     entropy = share(dist.entropy())
     choice = batch.teacher if batch.teacher is not None else layout.masked_argmax(
         layout.nbv_score(batch.obs.features, teacher.facade), batch.obs.mask, jnp)
-    imitation = -share(jnp.where(jnp.any(batch.obs.mask, axis=-1), dist.log_prob(choice), 0.0))
+    taught = jnp.any(batch.obs.mask, axis=-1) & (choice != NO_CHOICE)
+    imitation = -share(jnp.where(taught, dist.log_prob(jnp.maximum(choice, 0)), 0.0))
     total = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
              + teacher.weight * imitation)
     approx_kl = share((ratio - 1.0) - jnp.log(ratio))

@@ -43,11 +43,6 @@ _UNKNOWN = layout.FEATURES.index("view_unknown")
 _FACADE = layout.FEATURES.index("view_facade")
 
 
-def gain(unknown, facade, facade_weight):
-    """nbv_team's view gain before the cost: unknown + facade_weight x facade."""
-    return unknown + facade_weight * facade
-
-
 @struct.dataclass
 class Search:
     """What one robot's lookahead holds fixed: the peers it avoids and the scoring."""
@@ -74,7 +69,8 @@ def next_flight(search: Search, occupancy, top, position, heading, budget_left, 
                              search.dyn.turn_cost, search.dyn.collision_distance, size)
     unknown, facade = view.view_gain(after, top, following.position[::geometry.N_HEADINGS],
                                      params.sensor, size)
-    return after, following, gain(unknown.reshape(-1), facade.reshape(-1), search.facade_weight)
+    return after, following, layout.view_value(unknown.reshape(-1), facade.reshape(-1),
+                                               search.facade_weight)
 
 
 def continuation(search: Search, occupancy, top, position, heading, budget_left, gained,
@@ -108,8 +104,8 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
     nbv_team's score, -inf for the others and for infeasible ones. `mine` is the robot's
     observation (L, F) on `occupancy`, its map with its peers' claims counted as seen."""
     shell = search.params.candidates.shell[1]
-    first_gain = gain(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
-                      search.facade_weight)
+    first_gain = layout.view_value(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
+                                   search.facade_weight)
     rate = view.per_cost(first_gain, candidates.cost, shell)
     top_rate, order = jax.lax.top_k(jnp.where(mine.mask, rate, -jnp.inf), search.branches)
 

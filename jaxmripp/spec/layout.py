@@ -76,13 +76,18 @@ def view_prior(features, mask, xp=np):
     return gain / xp.maximum(xp.max(gain), xp.float32(VIEW_PRIOR_FLOOR))
 
 
+def view_value(unknown, facade, facade_weight: float):
+    """What a next-best-view planner counts in a view: unknown voxels plus `facade_weight`
+    x unknown facade voxels (`jaxmripp.spec.view`), as totals or per unit of cost."""
+    return unknown + facade_weight * facade
+
+
 def nbv_score(features, facade_weight: float):
-    """(..., L) the next-best-view score of candidates (..., L, F): view gain per unit of
-    flight cost, unknown voxels in view plus `facade_weight` x unknown facade voxels
-    (`jaxmripp.spec.view`). Plain indexing and arithmetic, so NumPy and JAX arrays share
-    it (`jaxmripp.evaluation.baselines.nbv_planner`, the runtime's "nbv" mode)."""
-    return features[..., FEATURES.index("view_unknown_per_cost")] \
-        + facade_weight * features[..., FEATURES.index("view_facade_per_cost")]
+    """(..., L) the next-best-view score of candidates (..., L, F): `view_value` per unit
+    of flight cost. Plain indexing and arithmetic, so NumPy and JAX arrays share it
+    (`jaxmripp.evaluation.baselines.nbv_planner`, the runtime's "nbv" mode)."""
+    return view_value(features[..., FEATURES.index("view_unknown_per_cost")],
+                      features[..., FEATURES.index("view_facade_per_cost")], facade_weight)
 
 
 def masked_argmax(scores, mask, xp=np):
