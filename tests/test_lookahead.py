@@ -47,8 +47,8 @@ def _reset_and_value(key, discount):
     occupancy, top = state.occupancy[0], state.building_top[0]
     values = lookahead.lookahead_values(search, mine, occupancy, top, key_ahead, c,
                                         state.budget_left[0], flights=2)
-    first_gain = layout.view_value(mine.features[:, layout.FEATURES.index("view_unknown")],
-                                   mine.features[:, layout.FEATURES.index("view_facade")], FACADE)
+    first_gain = mine.features[:, layout.FEATURES.index("view_unknown")] \
+        + FACADE * mine.features[:, layout.FEATURES.index("view_facade")]
     rate = jnp.where(mine.mask, first_gain * (PARAMS.candidates.shell[1] / jnp.maximum(
         c.cost, spec.COST_FLOOR)), -jnp.inf)
     _, order = jax.lax.top_k(rate, BRANCHES)
