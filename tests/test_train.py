@@ -257,6 +257,10 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     weights = [float(ppo.Teacher.at(decaying, u, facade).weight) for u in (0, 2, 8, 20)]
     np.testing.assert_allclose(weights, [coef, 0.75 * coef, 0.0, 0.0], rtol=1e-6)
     assert float(ppo.Teacher.at(cfg.ppo, 20, facade).weight) == np.float32(coef)
+    # Compiled, as the rollout computes it: exactly 0 from teacher_updates on.
+    fifty = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
+    jitted = jax.jit(lambda u: ppo.Teacher.at(fifty, u, facade).weight)
+    assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
 
 
 def test_the_lookahead_teacher_is_stored_by_the_rollout_while_its_weight_lasts():

@@ -293,7 +293,12 @@ class Teacher:
         over the first `cfg.teacher_updates` updates when that is > 0."""
         weight = jnp.float32(cfg.teacher_coef)
         if cfg.teacher_updates:
-            weight = weight * jnp.clip(1.0 - update / cfg.teacher_updates, 0.0, 1.0)
+            # Updates left, in integers: a float 1 - update / total compiles to a fused
+            # multiply-add that leaves a tiny positive weight at update == total, which
+            # would keep the teacher running one update too long.
+            total = cfg.teacher_updates
+            left = jnp.clip(total - jnp.asarray(update, jnp.int32), 0, total)
+            weight = weight * (left.astype(jnp.float32) / total)
         return cls(weight, facade)
 
 
