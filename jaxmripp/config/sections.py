@@ -147,8 +147,10 @@ class PPOConfig:
     # the observation each robot decided on: nbv_team's choice with policy.claims
     teacher_coef: float = 0.0
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
-    # whose choices: nbv (the score on the observation, as above) or nbv_ahead (that
-    # baseline's choices with the eval.nbv_ahead_* settings, computed in the rollouts)
+    # whose choices: nbv (the score on the observation, as above), nbv_ahead (that
+    # baseline's choices with the eval.nbv_ahead_* settings, computed in the rollouts) or
+    # oracle (the most undiscovered windows in view on the true world, ties by nbv_team's
+    # score: a privileged teacher, jaxmripp.sim.oracle)
     teacher: str = "nbv"
 
 

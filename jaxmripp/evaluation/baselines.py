@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import claims, comms, geometry, gp, lookahead, sensing
+from jaxmripp.sim import claims, comms, geometry, gp, lookahead, oracle
 from jaxmripp.sim.episode import Planner
 from jaxmripp.spec import layout
 from jaxmripp.sim.observation import FEATURES, Observation
@@ -135,30 +135,13 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
 
 
 def oracle_planner(params, name: str = "oracle") -> Planner:
-    """Sequential greedy on the ground truth: an upper reference, not a fair planner.
-
-    Each robot casts its sensor (`sensing.cast` on the true world) from every candidate
-    and takes the one that reveals the most windows nobody has discovered yet and that no
-    robot before it (index order) will see from its chosen pose this step. Ties (e.g.
-    nothing in view) are broken by the greedy utility score, squashed to stay below one
-    window.
-    """
+    """Sequential greedy on the ground truth (`jaxmripp.sim.oracle`): an upper reference,
+    not a fair planner. Ties (e.g. nothing in view) are broken by the greedy utility
+    score, squashed to stay below one window."""
     def act(key, memory, obs, state, dyn=None):
-        n = obs.mask.shape[0]
-        c = state.candidates
         jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
         tie = 0.1 * jnp.tanh(greedy_scores(obs, 1.0, 0.0)) + jitter  # |tie| < 0.5
-        cast = jax.vmap(lambda p, h: sensing.cast(state.world, p, h, params.sensor,
-                                                  params.size).seen)
-
-        def choose(covered, i):
-            seen = cast(c.position[i], c.heading[i])  # (L, T)
-            fresh = jnp.sum(seen & ~covered[None], axis=-1).astype(jnp.float32)
-            a = masked_argmax(fresh + tie[i], obs.mask[i])
-            covered = covered | (seen[a] & jnp.any(obs.mask[i]))
-            return covered, a
-
-        return memory, _sequential(choose, state.discovered, n)
+        return memory, oracle.choose_in_turn(obs.mask, state, params, tie)
 
     return Planner(name, no_memory, act)
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import claims, env as envmod, lookahead
+from jaxmripp.sim import claims, env as envmod, lookahead, oracle
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -234,11 +234,20 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
 def _teacher(cfg: Config, params: EnvParams):
     """choose(key, obs, state, dyn) -> the team's choices (N,) that the rollout stores for
-    the loss (ppo.teacher = nbv_ahead), or None where the loss derives the choice from the
-    observation itself."""
-    if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher != "nbv_ahead":
+    the loss (ppo.teacher = nbv_ahead or oracle), or None where the loss derives the
+    choice from the observation itself (nbv)."""
+    if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher == "nbv":
         return None
     e = cfg.eval
+    if cfg.ppo.teacher == "oracle":
+        def windows_first(key, obs, state, dyn):
+            # Among views that reveal as many windows, the one nbv_team would take.
+            score = layout.nbv_score(obs.features, e.nbv_team_facade)
+            scale = jnp.max(jnp.where(obs.mask, jnp.abs(score), 0.0), axis=-1, keepdims=True)
+            tie = 0.4 * score / jnp.maximum(scale, 1e-6)
+            tie = tie + 1e-4 * jax.random.uniform(key, obs.mask.shape)
+            return oracle.choose_in_turn(obs.mask, state, params, tie)
+        return windows_first
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
         key, obs, state, dyn, params, e.nbv_team_facade, e.nbv_ahead_discount,
         e.nbv_ahead_branches, e.nbv_ahead_flights)
