@@ -82,6 +82,8 @@ def test_kickstarting_needs_the_view_features():
         cfgmod.load(None, ["ppo.teacher_coef=1", "policy.view_features=false"])
     with pytest.raises(ConfigError, match="ppo.teacher_updates: got -1"):
         cfgmod.load(None, ["ppo.teacher_updates=-1"])
+    with pytest.raises(ConfigError, match="ppo.teacher: got foo; allowed: one of nbv, nbv_ahead, oracle"):
+        cfgmod.load(None, ["ppo.teacher=foo"])
 
 
 def test_near_miss_key_suggests_the_right_name():
