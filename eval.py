@@ -60,6 +60,11 @@ def main(argv=None) -> int:
 
     say = print if is_main_process() else (lambda *_: None)
 
+    try:
+        cfg = pipeline.with_policy_inputs(cfg, [run_dir for _, run_dir in policies])
+    except cfgmod.ConfigError as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
     planners = {}
     for name, run_dir in policies:
         planners[name] = pipeline.sweep_planner(run_dir, cfg, name, best=args.best, log=say)

@@ -78,6 +78,7 @@ def main(argv=None) -> int:
 
     policies = {}
     if has_policy:
+        cfg = pipeline.with_policy_inputs(cfg, [policy])
         policies["policy"] = pipeline.sweep_planner(
             policy, cfg, log=lambda line: print(line, file=sys.stderr))
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),

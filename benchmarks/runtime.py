@@ -15,7 +15,8 @@ has random weights of the default shape (the cost does not depend on their value
 
 Threads are pinned to one before NumPy loads; jax is never imported (checked at the end).
 
-Usage (from the repository root): python benchmarks/runtime.py
+Usage (from the repository root): python benchmarks/runtime.py [--ahead-branches N]
+(N > 0: a policy with the lookahead input of `jaxmripp.spec.layout`, following N candidates)
 Prints JSON lines {"name", "value", "unit", ...}; runtime.decision_ms is the headline.
 """
 
@@ -27,6 +28,8 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS",
              "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS"):
     os.environ[_var] = "1"
 
+import argparse  # noqa: E402
+import dataclasses  # noqa: E402
 import json  # noqa: E402
 import statistics  # noqa: E402
 import sys  # noqa: E402
@@ -38,7 +41,7 @@ import numpy as np  # noqa: E402
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
-from jaxmripp.runtime import NumpyPolicy, OnboardPlanner  # noqa: E402
+from jaxmripp.runtime import ROBOT_STATE, NumpyPolicy, OnboardPlanner  # noqa: E402
 from jaxmripp.runtime import weights as fmt  # noqa: E402
 from jaxmripp.demo import fly  # noqa: E402  (imports jax only inside main)
 from jaxmripp.flight.team import pads  # noqa: E402
@@ -53,10 +56,10 @@ def emit(name: str, value: float, unit: str, **extra) -> None:
     sys.stdout.flush()
 
 
-def random_weights(cfg: Config, rng) -> dict[str, np.ndarray]:
+def random_weights(cfg: Config, n_features: int, rng) -> dict[str, np.ndarray]:
     """Weights of the default policy's shapes (jaxmripp.learn.policy's parameter names)."""
     w, ff = cfg.policy.width, cfg.policy.width * cfg.policy.ff_mult
-    shapes = {"embed": (len(fmt.FEATURES), w), "state_embed": (len(fmt.ROBOT_STATE), w),
+    shapes = {"embed": (n_features, w), "state_embed": (len(ROBOT_STATE), w),
               "query": (2 * w, w), "pointer_query": (w, w), "pointer_key": (w, w),
               "value_hidden": (w, w), "value_out": (w, 1)}
     blocks = [f"encoder_{i}" for i in range(cfg.policy.layers)] + ["decoder"]
@@ -185,14 +188,24 @@ def episode(spec, policy, seed: int, mode: str):
 
 
 def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--ahead-branches", type=int, default=0,
+                        help="candidates the lookahead input follows (0: no such input)")
+    args = parser.parse_args()
     cfg = Config()  # the defaults: G = 50, K = 20 (L = 80), H = 64, width 64
+    cfg = dataclasses.replace(cfg, policy=dataclasses.replace(
+        cfg.policy, ahead_branches=args.ahead_branches))
     header = fmt.header(cfg, {"width": cfg.policy.width, "heads": cfg.policy.heads,
                               "layers": cfg.policy.layers, "ff_mult": cfg.policy.ff_mult,
                               "central_critic": False})
     spec = fmt.RuntimeSpec.from_header(json.loads(json.dumps(header)))
-    policy = NumpyPolicy(random_weights(cfg, np.random.default_rng(0)), header["policy"])
+    n_features = len(spec.features)
+    policy = NumpyPolicy(random_weights(cfg, n_features, np.random.default_rng(0)),
+                         header["policy"])
     common = dict(robots=N, size=spec.size, candidates=spec.n_candidates,
-                  gp_capacity=spec.gp.capacity, width=cfg.policy.width, threads=1)
+                  gp_capacity=spec.gp.capacity, width=cfg.policy.width, threads=1,
+                  ahead_branches=spec.ahead_branches)
 
     for mode in ("policy", "greedy"):
         seconds, sizes, map_sizes, seed = [], [], [], 0
@@ -215,9 +228,9 @@ def main() -> None:
 
     # The network alone on one observation, for the ratio.
     rng = np.random.default_rng(1)
-    features = rng.normal(size=(spec.n_candidates, len(fmt.FEATURES))).astype(np.float32)
+    features = rng.normal(size=(spec.n_candidates, n_features)).astype(np.float32)
     mask = rng.random(spec.n_candidates) < 0.8
-    state = rng.normal(size=len(fmt.ROBOT_STATE)).astype(np.float32)
+    state = rng.normal(size=len(ROBOT_STATE)).astype(np.float32)
     memory = policy.initial_memory()
     times = []
     for _ in range(300):

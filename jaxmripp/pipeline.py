@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -59,12 +60,37 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
                           cfg.policy.width, in_turn=in_turn)
 
 
+AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight")
+
+
+def with_policy_inputs(sweep: Config, run_dirs: Sequence[Path]) -> Config:
+    """`sweep` with the lookahead input (`policy.ahead_*`) of the policies in `run_dirs`,
+    so that its environments build the observations those policies read (the other
+    planners ignore the extra column). Policies that read different lookahead inputs
+    cannot share one sweep."""
+    wanted = {tuple(getattr(cfgmod.load(Path(d) / "config.yaml").policy, f)
+                    for f in AHEAD_FIELDS) for d in run_dirs}
+    if len(wanted) > 1:
+        raise cfgmod.ConfigError(
+            f"--policy: the policies read different lookahead inputs ({AHEAD_FIELDS} = "
+            f"{sorted(wanted)}); allowed: policies that agree on them, in one sweep")
+    if not wanted:
+        return sweep
+    values = dict(zip(AHEAD_FIELDS, wanted.pop()))
+    return dataclasses.replace(sweep, policy=dataclasses.replace(sweep.policy, **values))
+
+
 def sweep_planner(run_dir: Path, sweep: Config, name: str = "policy", best: bool = False,
                   log: Callable[[str], None] = print) -> baselines.Planner:
     """The policy in `run_dir` (a training run or an export, with its config.yaml) as the
     sweep config `sweep` deploys it, named `name`; where the sweep's settings differ from
     the policy's training, a note goes to `log`."""
     cfg = cfgmod.load(run_dir / "config.yaml")
+    ahead = [getattr(c.policy, f) for c in (cfg, sweep) for f in AHEAD_FIELDS]
+    if ahead[:3] != ahead[3:]:
+        raise cfgmod.ConfigError(
+            f"{name} reads the lookahead input {AHEAD_FIELDS} = {tuple(ahead[:3])}, the sweep "
+            f"builds {tuple(ahead[3:])}; allowed: the same (pipeline.with_policy_inputs)")
     for note in policy_mismatches(cfg, sweep):
         log(f"note: {name} was trained with {note}")
     return trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)

@@ -69,6 +69,56 @@ def test_weights_of_another_input_width_are_refused(flat_params):
         "global_embed/kernel": np.zeros((width, CFG.policy.width), np.float32)}))
 
 
+AHEAD = cfgmod.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3",
+                                                   "policy.ahead_branches=4",
+                                                   "policy.ahead_discount=1.5"])
+
+
+def test_a_policy_with_the_lookahead_input_exports_and_decides_onboard(flat_params, tmp_path):
+    """An export with the lookahead input (policy.ahead_branches) carries its settings and
+    one more column; the runtime builds that column from its generator's draws after the
+    candidates' and feeds all of them to the policy. Weights of the plain width are refused
+    under its header."""
+    from jaxmripp.runtime import OnboardPlanner, lookahead
+    from jaxmripp.runtime import candidates as np_candidates
+    from jaxmripp.spec import layout
+
+    _, flat = flat_params  # 21 inputs: not what an AHEAD header promises
+    with pytest.raises(export.ExportError, match="embed reads 21 inputs; .* gives 22"):
+        export.check_layout(export.header(AHEAD), flat)
+    _, params = init_params(AHEAD, seed=5)
+    export.export(AHEAD, params, tmp_path)
+    exported = weights.load(tmp_path)
+    spec = exported.spec
+    assert (spec.ahead_branches, spec.ahead_discount) == (4, 1.5)
+    assert spec.features == layout.FEATURES + ("ahead_rate",) and exported.policy.n_features == 22
+    assert weights.load(REPO / "pretrained/default").spec.ahead_branches == 0  # older exports
+
+    planner = OnboardPlanner(spec, 0, 2.0, policy=exported.policy, seed=7)
+    g = spec.size  # a ball of known free space around the robot, unknown beyond
+    centres = (np.stack(np.unravel_index(np.arange(g ** 3), (g, g, g)), -1) + 0.5) / g
+    near = np.flatnonzero(np.linalg.norm(centres - 0.5, axis=-1) < 0.35)
+    planner.sense(np.full(3, 0.5, np.float32), 1, near, np.zeros(near.size, np.int8), 0)
+    budget_left = planner.budget_left
+    d = planner.decide()
+    twin = np.random.default_rng(7)
+    draws = twin.random((spec.positions * spec.oversample - 1, 3), np.float32)
+    c = np_candidates.sample(draws, planner.position, planner.heading, budget_left,
+                             planner.map, np.zeros((0, 3), np.float32), spec)
+    np.testing.assert_array_equal(c.position, d.candidates.position)
+    rates = lookahead.ahead_rates(twin.random(lookahead.draw_shape(spec), np.float32),
+                                  d.features[:, :-1], c.valid, c, budget_left, planner.map,
+                                  np.zeros((0, 3), np.float32), spec)
+    np.testing.assert_array_equal(d.features[:, -1], rates)
+    one_step = layout.view_value(d.features[:, layout.FEATURES.index("view_unknown_per_cost")],
+                                 d.features[:, layout.FEATURES.index("view_facade_per_cost")],
+                                 np.float32(spec.ahead_facade_weight))
+    assert np.sum(rates[c.valid] > one_step[c.valid] * 1.001) >= 1  # some look ahead
+    _, logits, _ = exported.policy(exported.policy.initial_memory(), d.features, d.mask,
+                                   d.robot_state)
+    np.testing.assert_array_equal(d.scores, logits)
+
+
 def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_path,
                                                              monkeypatch):
     params, _ = flat_params
@@ -196,3 +246,21 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
     assert notes == [f"note: mine was trained with sensor.range={cfg.sensor.range} "
                      "(evaluating with 0.2)"]
     assert ship.main([str(tmp_path / "nothing"), str(out)]) == 1
+
+
+def test_a_sweep_builds_the_lookahead_input_its_policies_read(tmp_path):
+    from jaxmripp import pipeline
+
+    folders = {}
+    for name, cfg in (("plain", CFG), ("ahead", AHEAD)):
+        folders[name] = tmp_path / name
+        folders[name].mkdir()
+        (folders[name] / "config.yaml").write_text(cfgmod.to_yaml(cfg))
+    sweep = pipeline.with_policy_inputs(CFG, [folders["ahead"]])
+    assert (sweep.policy.ahead_branches, sweep.policy.ahead_discount) == (4, 1.5)
+    assert sweep.policy.width == CFG.policy.width  # nothing else is taken over
+    assert pipeline.with_policy_inputs(CFG, [folders["plain"]]) == CFG
+    with pytest.raises(cfgmod.ConfigError, match="different lookahead inputs"):
+        pipeline.with_policy_inputs(CFG, [folders["plain"], folders["ahead"]])
+    with pytest.raises(cfgmod.ConfigError, match="reads the lookahead input"):
+        pipeline.sweep_planner(folders["ahead"], CFG, "mine")

@@ -165,3 +165,99 @@ def test_branches_beyond_the_candidates_are_refused():
     with pytest.raises(config.ConfigError, match="eval.nbv_ahead_branches"):
         config.load(ROOT / "configs" / "smoke.yaml", ["eval.nbv_ahead_branches=25",
                                                       "eval.planners=[nbv_ahead]"])
+
+
+# The lookahead input (policy.ahead_branches): the env's column against the NumPy runtime's,
+# fed the uniforms the documented key derivation gives, on states a few random flights in.
+AHEAD_CFG = config.load(ROOT / "configs" / "smoke.yaml", [
+    "policy.ahead_branches=5", "policy.ahead_discount=1.5", "policy.ahead_facade_weight=3",
+    "radio.range=0.5"])
+AHEAD_PARAMS = envmod.EnvParams.from_config(AHEAD_CFG)
+AHEAD_DYN = envmod.DynamicParams.from_config(AHEAD_CFG)
+AHEAD_STEPS = 3
+
+
+@chex.assert_max_traces(n=1)
+def _episode_with_ahead(key):
+    """A reset and AHEAD_STEPS flights to random feasible candidates; the last observation,
+    the state it was made from and the step key that drew its lookahead."""
+    key_reset, key_steps = jax.random.split(key)
+    obs, state = envmod.reset(key_reset, AHEAD_PARAMS, AHEAD_DYN)
+    keys = jax.random.split(key_steps, AHEAD_STEPS)
+    for t in range(AHEAD_STEPS):
+        key_pick, key_step = jax.random.split(keys[t])
+        scores = jax.random.uniform(key_pick, obs.mask.shape)
+        actions = layout.masked_argmax(scores, obs.mask, jnp).astype(jnp.int32)
+        obs, state, *_ = envmod.step(key_step, state, actions, AHEAD_PARAMS, AHEAD_DYN)
+    return obs, state, key_step
+
+
+@pytest.fixture(scope="module")
+def ahead_episodes():
+    keys = jax.random.split(jax.random.PRNGKey(11), 8)
+    obs, state, step_keys = jax.jit(jax.vmap(_episode_with_ahead))(keys)
+    return jax.tree.map(np.asarray, (obs, state)), step_keys
+
+
+def test_ahead_input_matches_the_numpy_runtime(ahead_episodes):
+    from jaxmripp import export
+    from jaxmripp.runtime import candidates as runtime_cands
+    from jaxmripp.runtime import lookahead as runtime_lookahead
+    from jaxmripp.runtime.mapping import OccupancyMap
+    from jaxmripp.runtime.weights import RuntimeSpec, jsonable
+
+    (obs, state), step_keys = ahead_episodes
+    spec = RuntimeSpec.from_header(jsonable(export.header(AHEAD_CFG)))
+    n_features = len(layout.FEATURES)
+    assert obs.features.shape[-1] == n_features + 1 == len(spec.features)
+    assert np.all(np.isfinite(obs.features))
+    draws = runtime_lookahead.draw_shape(spec)
+    followed = improved = near_ties = 0
+    for e in range(obs.mask.shape[0]):
+        robot_keys = jax.random.split(jax.random.fold_in(step_keys[e], 1), AHEAD_PARAMS.n_robots)
+        for i in range(AHEAD_PARAMS.n_robots):
+            uniforms = np.stack([np.asarray(jax.random.uniform(k, draws[1:], jnp.float32))
+                                 for k in jax.random.split(robot_keys[i], spec.ahead_branches)])
+            occupancy = OccupancyMap(AHEAD_PARAMS.size)
+            occupancy.codes = state.occupancy[e, i].reshape(-1).copy()
+            occupancy.top = state.building_top[e, i].copy()
+            c = runtime_cands.Candidates(*(getattr(state.candidates, name)[e, i] for name in
+                                           ("position", "heading", "cost", "valid")))
+            heard = state.position[e][state.heard[e, i]]
+            if _near_tie(obs.features[e, i], obs.mask[e, i], c.cost, spec):
+                near_ties += 1
+                continue
+            ours = runtime_lookahead.ahead_rates(
+                uniforms, obs.features[e, i, :, :n_features], obs.mask[e, i], c,
+                state.budget_left[e, i], occupancy, heard, spec)
+            env = obs.features[e, i, :, -1]
+            np.testing.assert_allclose(ours, env, rtol=1e-6, err_msg=f"env {e} robot {i}")
+            one_step = np.asarray(runtime_view.per_cost(
+                layout.view_value(obs.features[e, i, :, layout.FEATURES.index("view_unknown")],
+                                  obs.features[e, i, :, layout.FEATURES.index("view_facade")],
+                                  np.float32(3.0)), c.cost, spec.shell[1]))
+            assert np.all(env >= one_step * (1 - 1e-6))  # a value is at least its own rate
+            followed += int(obs.mask[e, i].any())
+            improved += int(np.sum(env > one_step * (1 + 1e-6)))
+    # Real two-flight values were compared, not only one-step rates.
+    assert followed >= 6 and improved >= 6 and near_ties <= followed
+
+
+def _near_tie(features, mask, cost, spec) -> bool:
+    """Whether two of the branches + 1 best nonzero one-step rates agree to float32
+    rounding: XLA may fuse the view value's multiply-add, so such candidates may be
+    followed in either order (jaxmripp.spec.layout)."""
+    from jaxmripp.runtime import view as rv
+
+    gain = layout.view_value(features[:, layout.FEATURES.index("view_unknown")],
+                             features[:, layout.FEATURES.index("view_facade")],
+                             np.float32(spec.ahead_facade_weight))
+    rate = np.sort(rv.per_cost(gain, cost, spec.shell[1])[mask])[::-1][:spec.ahead_branches + 1]
+    rate = rate[rate > 0]
+    return bool(np.any(np.diff(rate) >= -1e-6 * rate[:-1]))
+
+
+def test_ahead_input_is_off_by_default_and_bounded_by_the_candidates():
+    assert envmod.EnvParams.from_config(CFG).n_features == len(layout.FEATURES)
+    with pytest.raises(config.ConfigError, match="policy.ahead_branches"):
+        config.load(ROOT / "configs" / "smoke.yaml", ["policy.ahead_branches=25"])

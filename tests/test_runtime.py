@@ -19,12 +19,13 @@ import pytest
 from jaxmripp.sim import candidates as jax_candidates
 from jaxmripp import config, export
 from jaxmripp.sim import gp as jax_gp, observation
+from jaxmripp.sim.params import EnvParams
 from jaxmripp.learn import policy as policymod, ppo
 from jaxmripp.config import GPConfig
 from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError, MessageError,
                               OnboardPlanner, PlannerStateError, ProtocolVersionError,
                               RuntimeSpec, WeightsFormatError)
-from jaxmripp.runtime.weights import FEATURES
+from jaxmripp.runtime import FEATURES, ROBOT_STATE
 from jaxmripp.runtime import candidates as np_candidates
 from jaxmripp.runtime import flight, messages, weights
 from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
@@ -44,7 +45,8 @@ def init_params(cfg=CFG, seed=0, noise=0.1):
     network = ppo.make_network(cfg)
     n_cand = cfg.candidates.count
     obs = observation.Observation(
-        features=jnp.zeros((n_cand, observation.N_FEATURES)), mask=jnp.ones((n_cand,), bool),
+        features=jnp.zeros((n_cand, EnvParams.from_config(cfg).n_features)),
+        mask=jnp.ones((n_cand,), bool),
         robot_state=jnp.zeros((observation.N_ROBOT_STATE,)),
         global_state=jnp.zeros((observation.global_state_size(cfg.robots.count),)))
     params = jax.jit(network.init)(jax.random.key(seed), policymod.initial_memory(cfg.policy), obs)
@@ -86,8 +88,8 @@ EXPECTED_ROBOT_STATE = [
 
 
 def test_layout_and_header_match_the_written_layout(exported):
-    assert list(weights.FEATURES) == EXPECTED_FEATURES
-    assert list(weights.ROBOT_STATE) == EXPECTED_ROBOT_STATE
+    assert list(FEATURES) == EXPECTED_FEATURES
+    assert list(ROBOT_STATE) == EXPECTED_ROBOT_STATE
     out, network, params = exported
     header = json.loads((out / "policy.json").read_text())
     assert header["format_version"] == weights.FORMAT_VERSION

@@ -95,6 +95,9 @@ RULES: dict[str, tuple] = {
     "policy.layers": _range(0, 16),
     "policy.ff_mult": _range(1, 16),
     "policy.view_prior": _NONNEG,
+    "policy.ahead_branches": _range(0, 4096),
+    "policy.ahead_discount": _NONNEG,
+    "policy.ahead_facade_weight": _NONNEG,
     "ppo.algo": _choice("ippo", "mappo"),
     "ppo.learning_rate": _range(0, 1, lo_open=True),
     "ppo.lr_decay": _range(0, 1, lo_open=True),
@@ -200,6 +203,10 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("eval.nbv_ahead_branches", cfg.eval.nbv_ahead_branches,
                          f"at most the candidate count 4 x candidates.positions = "
                          f"{cfg.candidates.count}"))
+    if cfg.policy.ahead_branches > cfg.candidates.count:
+        problems.append(("policy.ahead_branches", cfg.policy.ahead_branches,
+                         f"0 (no lookahead input) to the candidate count 4 x "
+                         f"candidates.positions = {cfg.candidates.count}"))
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))

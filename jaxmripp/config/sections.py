@@ -126,6 +126,11 @@ class PolicyConfig:
     # True: robots decide in turn and each sees its view gain without the views its peers
     # just claimed (jaxmripp.sim.claims), as the nbv_team baseline does
     claims: bool = False
+    # > 0: one more input, the two-flight lookahead value of the robot's this many best
+    # candidates (`ahead_rate`, jaxmripp.spec.layout), with these discount and facade weight
+    ahead_branches: int = 0
+    ahead_discount: float = 2.0
+    ahead_facade_weight: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)

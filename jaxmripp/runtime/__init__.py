@@ -32,8 +32,8 @@ from jaxmripp.runtime.messages import (PROTOCOL_VERSION, MapDelta, MapMessage, M
                                        decode_map, encode, encode_map)
 from jaxmripp.runtime.planner import Decision, OnboardPlanner
 from jaxmripp.runtime.policy import NumpyPolicy
-from jaxmripp.runtime.weights import (FEATURES, FORMAT_VERSION, ROBOT_STATE, ExportedPolicy,
-                                      RuntimeSpec, load)
+from jaxmripp.runtime.weights import FORMAT_VERSION, ExportedPolicy, RuntimeSpec, load
+from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
 
 __all__ = [
     "Candidates", "CorruptWeightsError", "Decision", "DepthCamera", "ExportedPolicy",

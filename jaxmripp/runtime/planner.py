@@ -25,7 +25,8 @@ robot, so that its map is the one the env's merge gives; a robot that heard nobo
 skip both. `decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`),
 draws candidate poses (`candidates`) or takes ones supplied by the caller, builds the
 policy's inputs on the merged map (the rule of `jaxmripp.spec.layout`, in `observation`,
-with the view gain of `jaxmripp.spec.view`, in `view`) and picks the next pose with the
+with the view gain of `jaxmripp.spec.view`, in `view`, and the lookahead input, in
+`lookahead`, where the policy has it) and picks the next pose with the
 exported policy or the greedy rule of `jaxmripp.evaluation.baselines.greedy_planner`.
 `resolve` applies the intent rule of `jaxmripp.spec.flight` (with `safety.intents`): if the
 chosen flight comes within d_c of the flight announced by a higher-priority robot heard
@@ -56,7 +57,7 @@ from typing import Any
 import numpy as np
 
 from jaxmripp.runtime import candidates as cands
-from jaxmripp.runtime import depth, flight, observation, safety, validation
+from jaxmripp.runtime import depth, flight, lookahead, observation, safety, validation
 from jaxmripp.runtime.errors import PlannerStateError
 from jaxmripp.runtime.exchange import RadioExchange
 from jaxmripp.runtime.feeding import FeedSchedule
@@ -311,14 +312,25 @@ class OnboardPlanner(RadioExchange):
         self.feeding.feed(self.utility_gp, self.comm_gp, self.history_pose,
                           self.history_utility, self.peer_pose, self.peer_utility)
 
-    def observe(self, c: cands.Candidates) -> tuple[np.ndarray, np.ndarray]:
+    def observe(self, c: cands.Candidates, ahead_uniforms: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
         """The policy's inputs (features (L, F), robot_state (S,)) for candidates `c` from
-        the robot's current state and GPs, without feeding or deciding anything."""
+        the robot's current state and GPs, without feeding or deciding anything. With the
+        lookahead input (`spec.ahead_branches` > 0) its draws take `ahead_uniforms`
+        (`lookahead.draw_shape`), by default the robot's generator's next ones."""
         self._require_sensed("observe")
+        heard = self._known_robots()
         features = observation.candidate_features(
             c, self.position, self.budget_left, self.budget_initial, self.spec.shell[1],
-            self.utility_gp, self.comm_gp, self.map, self._known_robots(),
-            self.spec.fov_deg, self.spec.sensor_range)
+            self.utility_gp, self.comm_gp, self.map, heard, self.spec.fov_deg,
+            self.spec.sensor_range)
+        if self.spec.ahead_branches:
+            if ahead_uniforms is None:
+                ahead_uniforms = self.rng.random(lookahead.draw_shape(self.spec), F32)
+            mask = c.valid & (self.step < self.max_steps)
+            rates = lookahead.ahead_rates(ahead_uniforms, features, mask, c, self.budget_left,
+                                          self.map, heard, self.spec)
+            features = np.concatenate([features, rates[:, None]], axis=1)
         state = observation.robot_state(self.position, self.heading, self.budget_left,
                                         self.budget_initial, self.step, self.max_steps)
         return features, state

@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from jaxmripp.spec.layout import input_keep, view_prior
+from jaxmripp.spec.layout import FEATURES, input_keep, view_prior
 
 LOGIT_CLIP = 10.0  # jaxmripp.learn.policy.LOGIT_CLIP
 LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm default
@@ -74,8 +74,6 @@ class NumpyPolicy:
         self.ff_mult = int(config["ff_mult"])
         self.central_critic = bool(config.get("central_critic", False))
         self.view_prior = bool(config.get("view_prior", False))
-        self.input_keep = input_keep(*(bool(config.get(f"{group}_features", True))
-                                       for group in ("comm", "view", "intent")))
         if self.width % self.heads:
             raise ValueError(f"width {self.width} is not a multiple of heads {self.heads}")
         missing = [n for n in _required_names(self.layers, self.central_critic, self.view_prior)
@@ -84,6 +82,9 @@ class NumpyPolicy:
             raise KeyError(f"weights lack {len(missing)} arrays, e.g. {missing[:4]}")
         self.w = {name: np.asarray(value, np.float32) for name, value in weights.items()}
         self.n_features = self.w["embed/kernel"].shape[0]
+        self.input_keep = input_keep(*(bool(config.get(f"{group}_features", True))
+                                       for group in ("comm", "view", "intent")),
+                                     ahead=self.n_features > len(FEATURES))
 
     def initial_memory(self) -> np.ndarray:
         return np.zeros(self.width, np.float32)

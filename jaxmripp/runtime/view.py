@@ -29,18 +29,19 @@ def nearby_tops(top: np.ndarray) -> np.ndarray:
                               padded[1:-1, :-2], padded[1:-1, 2:]])
 
 
-def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-              fov_deg: float, sensor_range: float, size: int) -> tuple[np.ndarray, np.ndarray]:
-    """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
-    view_facade), each (L,) float32."""
+def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
+             fov_deg: float, sensor_range: float, size: int):
+    """Poses (L, 3) / (L,) -> the flat voxel index (L, R, S) of every gain sample, which of
+    them are unknown and which facade (both (L, R, S) bool), and the weights (S,)."""
     offsets, weights = spec.gain_table(fov_deg, sensor_range, size)
     position = np.asarray(position, F32).reshape(-1, 3)
     camera = voxel_of(position, size)  # (L, 3)
-    sample = camera[:, None, None, :] + offsets[np.asarray(heading, np.int64)]  # (L, R, S, 3)
+    sample = camera[:, None, None, :] + offsets[np.asarray(heading, np.int64).reshape(-1)]
     inside = np.all((sample >= 0) & (sample < size), axis=-1)
     x, y, z = (np.clip(sample[..., a], 0, size - 1) for a in range(3))
     column = x * size + y
-    code = np.asarray(codes)[column * size + z]
+    flat = column * size + z
+    code = np.asarray(codes)[flat]
     # A sample is clear when no earlier sample of its ray left the grid or hit OCCUPIED.
     stops = ~inside | (code == OCCUPIED)
     clear = np.ones_like(stops)
@@ -48,11 +49,29 @@ def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading:
     unknown = clear & inside & (code == UNKNOWN)
     near = nearby_tops(top).reshape(-1)[column]
     facade = unknown & (near > 0) & (sample[..., 2] <= near)
-    total = F32(offsets.shape[1] * int(weights.sum()))
+    return flat, unknown, facade, weights
+
+
+def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
+              fov_deg: float, sensor_range: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
+    view_facade), each (L,) float32."""
+    _, unknown, facade, weights = _samples(codes, top, position, heading, fov_deg,
+                                           sensor_range, size)
+    total = F32(unknown.shape[1] * int(weights.sum()))
     unknown_sum = (unknown * weights).sum(axis=(1, 2))
     facade_sum = (facade * weights).sum(axis=(1, 2))
     scale = F32(1) / total
     return unknown_sum.astype(F32) * scale, facade_sum.astype(F32) * scale
+
+
+def unknown_in_view(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: int,
+                    fov_deg: float, sensor_range: float, size: int) -> np.ndarray:
+    """The flat indices of one pose's unknown samples: the part of the map it would reveal
+    (`jaxmripp.sim.view.unknown_in_view`)."""
+    flat, unknown, _, _ = _samples(codes, top, position, heading, fov_deg, sensor_range,
+                                   size)
+    return flat[unknown]
 
 
 def per_cost(gain: np.ndarray, cost: np.ndarray, shell_outer: float) -> np.ndarray:

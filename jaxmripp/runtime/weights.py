@@ -8,10 +8,14 @@ policy.json
     format            "jaxmripp-policy"
     format_version    FORMAT_VERSION; a reader refuses any other version
     layout            {"features": [...], "robot_state": [...]}: the column order of the
-                      policy's inputs, which must equal this runtime's FEATURES / ROBOT_STATE
+                      policy's inputs, which must equal this runtime's
+                      `features(ahead)` (FEATURES, with the lookahead input when
+                      config.ahead.branches > 0) / ROBOT_STATE
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
                       world.size, sensor.*, candidates.*, robots.*, radio.*, safety.*,
-                      gp.*, reward.utility_norm, episode.max_steps; infinities are the
+                      gp.*, reward.utility_norm, episode.max_steps, ahead.* (the
+                      lookahead input of `jaxmripp.spec.layout`: branches, discount,
+                      facade_weight; absent: none); infinities are the
                       string "inf". The runtime flies safety.flight "known_free" only
                       and needs radio.share_maps (whether robots exchange maps).
     policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
@@ -41,7 +45,7 @@ import numpy as np
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.spec.flight import PRIORITIES
-from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
+from jaxmripp.spec.layout import ROBOT_STATE, features
 
 FORMAT = "jaxmripp-policy"
 FORMAT_VERSION = 1
@@ -95,10 +99,20 @@ class RuntimeSpec:
     takeoff_scan: bool = True
     intents: bool = True
     priority: str = "id"
+    # The lookahead input (jaxmripp.spec.layout): candidates followed (0: no such input),
+    # the later flight's weight and the facade weight of its view value.
+    ahead_branches: int = 0
+    ahead_discount: float = 2.0
+    ahead_facade_weight: float = 2.0
 
     @property
     def n_candidates(self) -> int:
         return 4 * self.positions
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        """The policy's input columns (`jaxmripp.spec.layout.features`)."""
+        return features(self.ahead_branches > 0)
 
     @classmethod
     def from_header(cls, header: Mapping[str, Any]) -> "RuntimeSpec":
@@ -127,6 +141,11 @@ class RuntimeSpec:
         if priority not in PRIORITIES:
             raise WeightsFormatError(f"export header: config.safety.priority {priority!r} is "
                                      f"not one of {', '.join(PRIORITIES)}")
+        ahead = {}
+        if "ahead" in config:  # exports without the lookahead input may lack the section
+            ahead = dict(ahead_branches=get("ahead", "branches", int),
+                         ahead_discount=get("ahead", "discount", float),
+                         ahead_facade_weight=get("ahead", "facade_weight", float))
         return cls(
             size=get("world", "size", int),
             positions=get("candidates", "positions", int),
@@ -151,6 +170,7 @@ class RuntimeSpec:
             takeoff_scan=get("safety", "takeoff_scan", bool),
             intents=get("safety", "intents", bool),
             priority=priority,
+            **ahead,
         )
 
 
@@ -204,6 +224,9 @@ def config_header(cfg) -> dict[str, Any]:
         "gp": dataclasses.asdict(cfg.gp),
         "reward": {"utility_norm": cfg.reward.utility_norm},
         "episode": {"max_steps": cfg.episode.max_steps},
+        "ahead": {"branches": cfg.policy.ahead_branches,
+                  "discount": cfg.policy.ahead_discount,
+                  "facade_weight": cfg.policy.ahead_facade_weight},
     })
 
 
@@ -212,7 +235,8 @@ def header(cfg, policy_config: Mapping[str, Any], source: Mapping | None = None)
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "layout": {"features": list(FEATURES), "robot_state": list(ROBOT_STATE)},
+        "layout": {"features": list(features(cfg.policy.ahead_branches > 0)),
+                   "robot_state": list(ROBOT_STATE)},
         "config": config_header(cfg),
         "policy": dict(policy_config),
         "source": jsonable(dict(source or {})),
@@ -311,7 +335,8 @@ def read_header(path: str | Path) -> dict:
         raise WeightsFormatError(f"{path}: format version {version!r}; this runtime reads "
                                  f"version {FORMAT_VERSION} (re-export with a matching jaxmripp)")
     layout = _field(header, "layout", dict)
-    for key, expected in (("features", FEATURES), ("robot_state", ROBOT_STATE)):
+    expected_features = RuntimeSpec.from_header(header).features
+    for key, expected in (("features", expected_features), ("robot_state", ROBOT_STATE)):
         if tuple(layout.get(key, ())) != expected:
             raise WeightsFormatError(f"{path}: layout.{key} differs from this runtime's "
                                      f"{key} layout")
@@ -338,9 +363,9 @@ def load(path: str | Path) -> ExportedPolicy:
         message = err.args[0] if err.args else type(err).__name__
         raise WeightsFormatError(f"{npz_path}: weights do not fit the header's policy "
                                  f"({message})") from None
-    if policy.n_features != len(FEATURES):
+    if policy.n_features != len(spec.features):
         raise WeightsFormatError(f"{npz_path}: the policy reads {policy.n_features} features; "
-                                 f"this runtime builds {len(FEATURES)}")
+                                 f"this runtime builds {len(spec.features)}")
     return ExportedPolicy(header, spec, weights, policy, json_path.parent)
 
 

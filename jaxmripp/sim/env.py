@@ -17,7 +17,8 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import comms, flight, geometry, gp, sensing, view, world as worldmod
+from jaxmripp.sim import comms, flight, geometry, gp, lookahead, sensing, view
+from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.geometry import FREE, N_HEADINGS, OCCUPIED
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.sim.feeding import feed_gps
@@ -66,7 +67,8 @@ def reset(key: chex.PRNGKey, params: EnvParams,
     if params.safety.takeoff_scan:
         state = _takeoff_scan(state, params, dyn)
     state, _ = _after_move(key_rest, state, jnp.ones((n,), bool), params, dyn)
-    return observe(state, params), state
+    return lookahead.with_ahead_rates(key_rest, observe(state, params), state, params,
+                                      dyn), state
 
 
 def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvParams,
@@ -79,7 +81,8 @@ def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvPara
         + dyn.gamma * parts.reward_communication
     reward = jnp.where(moving, reward, 0.0)
     info = parts.replace(acted=moving)
-    return observe(state, params), state, reward, state.done, info
+    obs = lookahead.with_ahead_rates(key, observe(state, params), state, params, dyn)
+    return obs, state, reward, state.done, info
 
 
 def _takeoff_scan(state: EnvState, params: EnvParams, dyn: DynamicParams) -> EnvState:

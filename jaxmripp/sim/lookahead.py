@@ -121,6 +121,38 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
     return jnp.full(rate.shape, -jnp.inf).at[order].set(values)
 
 
+def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
+                dyn: DynamicParams) -> jax.Array:
+    """(N, L) the `ahead_rate` input of `jaxmripp.spec.layout` for the team's observations
+    `obs` (FEATURES columns) on their own maps: `lookahead_values` over two flights where
+    a candidate is followed, its one-step rate elsewhere. One environment: callers vmap."""
+    ahead, shell = params.ahead, params.candidates.shell[1]
+    keys = jax.random.split(key, params.n_robots)
+
+    def one(i, features, mask, occupancy, top, c, budget_left, key):
+        mine = Observation(features=features, mask=mask, robot_state=None, global_state=None)
+        search = Search(params, dyn, state.position, state.heard[i], ahead.facade_weight,
+                        ahead.discount, ahead.branches)
+        values = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2)
+        gain = layout.view_value(features[:, _UNKNOWN], features[:, _FACADE],
+                                 ahead.facade_weight)
+        return jnp.where(jnp.isfinite(values), values, view.per_cost(gain, c.cost, shell))
+
+    return jax.vmap(one)(jnp.arange(params.n_robots), obs.features, obs.mask,
+                         state.occupancy, state.building_top, state.candidates,
+                         state.budget_left, keys)
+
+
+def with_ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
+                     dyn: DynamicParams) -> Observation:
+    """`obs` with the lookahead input appended when `params.ahead.branches` > 0 (the
+    key: the step's, from which `ahead_rates` draws with `fold_in(key, 1)`)."""
+    if not params.ahead.branches:
+        return obs
+    rates = ahead_rates(jax.random.fold_in(key, 1), obs, state, params, dyn)
+    return obs.replace(features=jnp.concatenate([obs.features, rates[..., None]], axis=-1))
+
+
 def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
                    params: EnvParams, facade_weight: float, discount, branches: int,
                    flights: int) -> jax.Array:

@@ -4,8 +4,9 @@ The env fills an `Observation` per robot; the policy reads one robot's observati
 (callers `vmap` over robots and environments, so every field may carry leading batch
 axes). `observe` builds the team's observations from an `EnvState`.
 
-Shapes (L candidates, F = len(FEATURES), S = len(ROBOT_STATE), N robots):
-    features      (..., L, F)        float32, columns in FEATURES order
+Shapes (L candidates, F = EnvParams.n_features, S = len(ROBOT_STATE), N robots):
+    features      (..., L, F)        float32, columns in FEATURES order, then the lookahead
+                                     input where configured (`jaxmripp.spec.layout`)
     mask          (..., L)           bool, True = feasible candidate
     robot_state   (..., S)           float32, columns in ROBOT_STATE order
     global_state  (..., N * S + 2)   float32, every robot's robot_state (robot-major),
@@ -53,7 +54,7 @@ class Observation:
     def zeros(cls, params: EnvParams) -> "Observation":
         """One robot's observation, all zero: shapes for initialising a network without
         tracing a reset."""
-        return cls(features=jnp.zeros((params.n_candidates, N_FEATURES), jnp.float32),
+        return cls(features=jnp.zeros((params.n_candidates, params.n_features), jnp.float32),
                    mask=jnp.zeros((params.n_candidates,), bool),
                    robot_state=jnp.zeros((N_ROBOT_STATE,), jnp.float32),
                    global_state=jnp.zeros((global_state_size(params.n_robots),), jnp.float32))
@@ -81,6 +82,8 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
 
     Only static parameters are read: budgets enter as fractions of the initial budget.
+    The lookahead input, which draws candidates, is appended by the env
+    (`jaxmripp.sim.lookahead.with_ahead_rates`).
     """
     n = params.n_robots
     c = state.candidates

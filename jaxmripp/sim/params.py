@@ -20,6 +20,7 @@ from flax import struct
 
 from jaxmripp.config import (CandidateConfig, Config, GPConfig, SafetyConfig, SensorConfig,
                              WorldConfig)
+from jaxmripp.spec import layout
 
 
 @dataclasses.dataclass(frozen=True)
@@ -35,6 +36,15 @@ class StaticRadio:
 
 
 @dataclasses.dataclass(frozen=True)
+class StaticAhead:
+    """The lookahead input (`ahead_rate`, jaxmripp.spec.layout); branches 0: none."""
+
+    branches: int = 0
+    discount: float = 2.0
+    facade_weight: float = 2.0
+
+
+@dataclasses.dataclass(frozen=True)
 class EnvParams:
     world: WorldConfig
     robots: StaticRobots
@@ -44,6 +54,7 @@ class EnvParams:
     candidates: CandidateConfig
     gp: GPConfig
     max_steps: int  # T_max; history length T_max + 1
+    ahead: StaticAhead = StaticAhead()
 
     @classmethod
     def from_config(cls, cfg: Config) -> "EnvParams":
@@ -51,7 +62,9 @@ class EnvParams:
                    robots=StaticRobots(cfg.robots.count, cfg.robots.start_heading),
                    sensor=cfg.sensor, safety=cfg.safety,
                    radio=StaticRadio(cfg.radio.relay, cfg.radio.share_maps),
-                   candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps)
+                   candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps,
+                   ahead=StaticAhead(cfg.policy.ahead_branches, cfg.policy.ahead_discount,
+                                     cfg.policy.ahead_facade_weight))
 
     @property
     def size(self) -> int:
@@ -64,6 +77,11 @@ class EnvParams:
     @property
     def n_candidates(self) -> int:
         return self.candidates.count
+
+    @property
+    def n_features(self) -> int:
+        """F, the width of an observation's features (jaxmripp.spec.layout.features)."""
+        return len(layout.features(self.ahead.branches > 0))
 
     @property
     def utility_gps(self) -> int:

@@ -26,6 +26,24 @@ Padding candidates (invalid) still get rows computed by these formulas; the mask
 Input groups can be ablated (`policy.comm_features`, `view_features`, `intent_features`):
 the policy then multiplies the group's columns by 0 (`input_keep`), on both sides.
 
+LOOKAHEAD INPUT (`policy.ahead_branches` n > 0): one more column after FEATURES,
+`ahead_rate` (`features(ahead=True)`), the value `nbv_ahead` gives a candidate when it looks
+two flights ahead (`jaxmripp.sim.lookahead`), with the discount d = `policy.ahead_discount`
+and the facade weight w = `policy.ahead_facade_weight`. With g = view_value(view_unknown,
+view_facade, w) and r = view.per_cost(g, cost) (`jaxmripp.spec.view`'s per_cost), the n
+feasible candidates of largest r (ties: the lower index first) are followed, the k-th of
+them with the k-th block of uniforms: for such a candidate a, its pose's unknown samples
+(`jaxmripp.spec.view`: clear, inside the grid, mapped UNKNOWN) are set FREE in a copy of
+the map, candidates b are drawn around a's pose by the candidate rule (budget: the robot's
+budget left minus c(a); the robots heard this round), their g(b) are computed on that
+copy, and
+    ahead_rate(a) = max(r(a), max over feasible b of per_cost(g(a) + d g(b), c(a) + d c(b)));
+every other row (not followed, or nothing feasible) holds r. Rates that are equal in exact
+arithmetic may differ in the last bit between the two sides (XLA may fuse g's multiply-add),
+so such candidates may be followed in either order. The env draws robot i's k-th block
+from `jax.random.split(key_i, n)[k]`, key_i = `jax.random.split(fold_in(step key, 1),
+N)[i]`; the runtime from its own generator, after the candidates' draws.
+
 DECIDING IN TURN (`policy.claims`): robots choose in index order, and robot i's four VIEW
 columns are computed on its map with the unknown samples in view of the chosen poses of
 the robots j < i it hears (each on robot j's map) set FREE (`jaxmripp.sim.claims`). The
@@ -50,12 +68,18 @@ FEATURES = (
     "view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost",
     "peer_distance",
 )  # fmt: skip
+AHEAD_FEATURES = ("ahead_rate",)  # appended to FEATURES with policy.ahead_branches > 0
 ROBOT_STATE = (
     "x", "y", "z",
     "heading_0", "heading_1", "heading_2", "heading_3",
     "budget_left", "step",
 )  # fmt: skip
 N_GLOBAL_EXTRA = 2
+
+
+def features(ahead: bool = False) -> tuple[str, ...]:
+    """The policy's input columns: FEATURES, then AHEAD_FEATURES with the lookahead input."""
+    return FEATURES + AHEAD_FEATURES if ahead else FEATURES
 
 
 FEATURE_GROUPS = {
@@ -96,10 +120,13 @@ def masked_argmax(scores, mask, xp=np):
     return xp.argmax(xp.where(mask, scores, -xp.inf), axis=-1)
 
 
-def input_keep(comm: bool = True, view: bool = True, intent: bool = True) -> np.ndarray:
-    """(F,) float32 1/0 multipliers of the FEATURES columns: 0 for an ablated group."""
+def input_keep(comm: bool = True, view: bool = True, intent: bool = True,
+               ahead: bool = False) -> np.ndarray:
+    """(F,) float32 1/0 multipliers of the `features(ahead)` columns: 0 for an ablated
+    group."""
     dropped = set()
     for group, kept in (("comm", comm), ("view", view), ("intent", intent)):
         if not kept:
             dropped.update(FEATURE_GROUPS[group])
-    return np.asarray([0.0 if name in dropped else 1.0 for name in FEATURES], np.float32)
+    return np.asarray([0.0 if name in dropped else 1.0 for name in features(ahead)],
+                      np.float32)
