@@ -92,7 +92,7 @@ def test_a_policy_with_the_lookahead_input_exports_and_decides_onboard(flat_para
     spec = exported.spec
     assert (spec.ahead_branches, spec.ahead_discount) == (4, 1.5)
     assert spec.features == layout.FEATURES + ("ahead_rate",) and exported.policy.n_features == 22
-    assert weights.load(REPO / "pretrained/default").spec.ahead_branches == 0  # older exports
+    assert weights.load(REPO / "pretrained/paper").spec.ahead_branches == 0  # older exports
 
     planner = OnboardPlanner(spec, 0, 2.0, policy=exported.policy, seed=7)
     g = spec.size  # a ball of known free space around the robot, unknown beyond

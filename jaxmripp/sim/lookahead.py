@@ -1,5 +1,6 @@
-"""Next-best view in turn, looking more than one flight ahead (the `nbv_ahead` baseline
-and the lookahead teacher of `ppo.teacher`).
+"""Next-best view in turn, looking more than one flight ahead (the `nbv_ahead` baseline,
+the lookahead teacher of `ppo.teacher` and the policy's lookahead input of
+`policy.ahead_branches`, `ahead_rates`).
 
 `nbv_team` takes the candidate with the most view gain per unit of flight cost, one step
 at a time. A pose that sees a little but opens onto a rich view next is worth more than
