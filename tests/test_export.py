@@ -117,6 +117,15 @@ def test_a_policy_with_the_lookahead_input_exports_and_decides_onboard(flat_para
     _, logits, _ = exported.policy(exported.policy.initial_memory(), d.features, d.mask,
                                    d.robot_state)
     np.testing.assert_array_equal(d.scores, logits)
+    # The other modes neither read the input nor spend draws on it.
+    greedy = OnboardPlanner(spec, 0, 2.0, mode="greedy", seed=7)
+    greedy.sense(np.full(3, 0.5, np.float32), 1, near, np.zeros(near.size, np.int8), 0)
+    g = greedy.decide()
+    assert g.features.shape[1] == len(layout.FEATURES)
+    np.testing.assert_array_equal(g.candidates.position, c.position)
+    fresh = np.random.default_rng(7)
+    fresh.random(draws.shape, np.float32)  # the candidates' draws, and nothing more
+    np.testing.assert_array_equal(greedy.rng.random(3), fresh.random(3))
 
 
 def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_path,

@@ -35,6 +35,7 @@ from typing import Callable, Sequence
 from jaxmripp.config import Config
 from jaxmripp.evaluation import cells, evaluate
 from jaxmripp.sim.episode import Planner
+from jaxmripp.sim.params import StaticAhead
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
 from jaxmripp.evaluation.planners import baseline_planner, deployed, eval_setting
 from jaxmripp.evaluation.stats import mean_ci, welch_ttest
@@ -222,13 +223,18 @@ def _run_group(cfg: Config, group: list[Shape], names: list[str],
     params = evaluate.eval_params(cfg, [s.budget for s in group], layout=e.layout,
                                   robots=n, size=size)
     dynamics = [evaluate.eval_dynamic(cfg, s.budget, s.radio_range) for s in group]
+    # Only the policies read the lookahead input (policy.ahead_branches, set for them by
+    # pipeline.with_policy_inputs); the baselines' environments skip computing it.
+    plain = dataclasses.replace(params, ahead=StaticAhead())
     runs = []
     for name in names:
-        planner = deployed(policies.get(name) or baseline_planner(name, params, e), e.sectors)
-        group_runs = cells.run_shapes(planner, params, group, dynamics, e.seed, e.worlds,
-                                      e.trials, compiler_options=compiler_options, **options)
+        planner_params = params if name in policies else plain
+        planner = deployed(policies.get(name) or baseline_planner(name, plain, e), e.sectors)
+        group_runs = cells.run_shapes(planner, planner_params, group, dynamics, e.seed,
+                                      e.worlds, e.trials, compiler_options=compiler_options,
+                                      **options)
         if time_planning:
-            ms, compile_s = cells.time_planning(planner, params, dynamics, e.seed,
+            ms, compile_s = cells.time_planning(planner, planner_params, dynamics, e.seed,
                                                 compiler_options=compiler_options)
             for run, plan_ms in zip(group_runs, ms):
                 run.plan_ms_per_robot_step = plan_ms

@@ -91,7 +91,7 @@ class Decision:
     scores: np.ndarray  # (L,) policy logits (infeasible floored) or greedy scores
     mask: np.ndarray  # (L,) bool candidates the rule could pick (offered, safe, in sector)
     safe: np.ndarray  # (L,) bool passed the safety filter
-    features: np.ndarray  # (L, F) policy input, layout FEATURES
+    features: np.ndarray  # (L, F) inputs, layout FEATURES (+ the lookahead input in policy mode)
     robot_state: np.ndarray  # (S,) policy input, layout ROBOT_STATE
     candidates: cands.Candidates
     yields_to: int | None = None  # a hold (`resolve`): the robot whose flight goes first
@@ -256,7 +256,7 @@ class OnboardPlanner(RadioExchange):
         self.feed_gps()
         stats: dict = {}
         c = self._sample(stats) if external is None else self._supplied(*external)
-        features, robot_state = self.observe(c)
+        features, robot_state = self.observe(c, ahead=mode == "policy")
         safe, why = safety.check(c, self.position, self.budget_left, self.map,
                                  self._known_robots(), self.spec)
         done = self.step >= self.max_steps
@@ -312,19 +312,20 @@ class OnboardPlanner(RadioExchange):
         self.feeding.feed(self.utility_gp, self.comm_gp, self.history_pose,
                           self.history_utility, self.peer_pose, self.peer_utility)
 
-    def observe(self, c: cands.Candidates, ahead_uniforms: np.ndarray | None = None
-                ) -> tuple[np.ndarray, np.ndarray]:
+    def observe(self, c: cands.Candidates, ahead_uniforms: np.ndarray | None = None,
+                ahead: bool = True) -> tuple[np.ndarray, np.ndarray]:
         """The policy's inputs (features (L, F), robot_state (S,)) for candidates `c` from
         the robot's current state and GPs, without feeding or deciding anything. With the
-        lookahead input (`spec.ahead_branches` > 0) its draws take `ahead_uniforms`
-        (`lookahead.draw_shape`), by default the robot's generator's next ones."""
+        lookahead input (`spec.ahead_branches` > 0, unless `ahead` is False: the other
+        modes do not read it) its draws take `ahead_uniforms` (`lookahead.draw_shape`), by
+        default the robot's generator's next ones."""
         self._require_sensed("observe")
         heard = self._known_robots()
         features = observation.candidate_features(
             c, self.position, self.budget_left, self.budget_initial, self.spec.shell[1],
             self.utility_gp, self.comm_gp, self.map, heard, self.spec.fov_deg,
             self.spec.sensor_range)
-        if self.spec.ahead_branches:
+        if self.spec.ahead_branches and ahead:
             if ahead_uniforms is None:
                 ahead_uniforms = self.rng.random(lookahead.draw_shape(self.spec), F32)
             mask = c.valid & (self.step < self.max_steps)
