@@ -18,7 +18,7 @@ from typing import Any
 from jaxmripp.learn import policy as policymod
 from jaxmripp.config import Config
 from jaxmripp.runtime import weights as fmt
-from jaxmripp.spec.layout import N_GLOBAL_EXTRA, ROBOT_STATE, features
+from jaxmripp.spec.layout import N_GLOBAL_EXTRA, ROBOT_STATE
 
 
 class ExportError(ValueError):
@@ -38,8 +38,8 @@ def check_layout(head: dict[str, Any], weights: dict[str, Any]) -> None:
     column, global_embed: N robot states plus the team values). Checked here, at export
     time, so that a drift fails on the workstation rather than onboard."""
     layout = head.get("layout") or {}
-    ahead = (head.get("config", {}).get("ahead") or {}).get("branches", 0) > 0
-    for key, spec in (("features", features(ahead)), ("robot_state", ROBOT_STATE)):
+    wanted = fmt.RuntimeSpec.from_header(head).features
+    for key, spec in (("features", wanted), ("robot_state", ROBOT_STATE)):
         if list(layout.get(key) or ()) != list(spec):
             raise ExportError(f"header layout.{key} {layout.get(key)!r} differs from "
                               f"jaxmripp.spec.layout's {list(spec)!r}")

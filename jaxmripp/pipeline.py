@@ -63,13 +63,18 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
 AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight")
 
 
+def policy_inputs(cfg: Config) -> tuple:
+    """The settings of `cfg`'s optional policy inputs (`AHEAD_FIELDS`), which decide the
+    observations its environments build."""
+    return tuple(getattr(cfg.policy, f) for f in AHEAD_FIELDS)
+
+
 def with_policy_inputs(sweep: Config, run_dirs: Sequence[Path]) -> Config:
     """`sweep` with the lookahead input (`policy.ahead_*`) of the policies in `run_dirs`,
     so that its environments build the observations those policies read (the other
     planners ignore the extra column). Policies that read different lookahead inputs
     cannot share one sweep."""
-    wanted = {tuple(getattr(cfgmod.load(Path(d) / "config.yaml").policy, f)
-                    for f in AHEAD_FIELDS) for d in run_dirs}
+    wanted = {policy_inputs(cfgmod.load(Path(d) / "config.yaml")) for d in run_dirs}
     if len(wanted) > 1:
         raise cfgmod.ConfigError(
             f"--policy: the policies read different lookahead inputs ({AHEAD_FIELDS} = "
@@ -86,11 +91,11 @@ def sweep_planner(run_dir: Path, sweep: Config, name: str = "policy", best: bool
     sweep config `sweep` deploys it, named `name`; where the sweep's settings differ from
     the policy's training, a note goes to `log`."""
     cfg = cfgmod.load(run_dir / "config.yaml")
-    ahead = [getattr(c.policy, f) for c in (cfg, sweep) for f in AHEAD_FIELDS]
-    if ahead[:3] != ahead[3:]:
+    if policy_inputs(cfg) != policy_inputs(sweep):
         raise cfgmod.ConfigError(
-            f"{name} reads the lookahead input {AHEAD_FIELDS} = {tuple(ahead[:3])}, the sweep "
-            f"builds {tuple(ahead[3:])}; allowed: the same (pipeline.with_policy_inputs)")
+            f"{name} reads the lookahead input {AHEAD_FIELDS} = {policy_inputs(cfg)}, the "
+            f"sweep builds {policy_inputs(sweep)}; allowed: the same "
+            "(pipeline.with_policy_inputs)")
     for note in policy_mismatches(cfg, sweep):
         log(f"note: {name} was trained with {note}")
     return trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)

@@ -45,8 +45,8 @@ def _reset_and_value(key, discount):
     search = lookahead.Search(PARAMS, DYN, state.position, state.heard[0], FACADE, discount,
                               BRANCHES)
     occupancy, top = state.occupancy[0], state.building_top[0]
-    values = lookahead.lookahead_values(search, mine, occupancy, top, key_ahead, c,
-                                        state.budget_left[0], flights=2)
+    values, score = lookahead.lookahead_values(search, mine, occupancy, top, key_ahead, c,
+                                               state.budget_left[0], flights=2)
     first_gain = mine.features[:, layout.FEATURES.index("view_unknown")] \
         + FACADE * mine.features[:, layout.FEATURES.index("view_facade")]
     rate = jnp.where(mine.mask, first_gain * (PARAMS.candidates.shell[1] / jnp.maximum(
@@ -55,7 +55,7 @@ def _reset_and_value(key, discount):
     second = jax.vmap(lambda j, k: lookahead.next_flight(
         search, occupancy, top, c.position[j], c.heading[j], state.budget_left[0] - c.cost[j],
         k)[1])(order, jax.random.split(key_ahead, BRANCHES))
-    return obs, state, values, first_gain, order, second
+    return obs, state, values, first_gain, order, second, score
 
 
 @pytest.fixture(scope="module")
@@ -86,8 +86,11 @@ def _seen(codes, position, heading):
 
 
 def test_two_flight_values_match_a_numpy_reference(valued):
-    obs, state, values, first_gain, order, second = valued
+    obs, state, values, first_gain, order, second, score = valued
     shell = PARAMS.candidates.shell[1]
+    # The returned score is nbv_team's one-step rate, which ranks the followed branches.
+    rate = first_gain * (shell / np.maximum(state.candidates.cost[:, 0], spec.COST_FLOOR))
+    np.testing.assert_allclose(score[obs.mask[:, 0]], rate[obs.mask[:, 0]], rtol=1e-6)
     lo, hi = PARAMS.candidates.shell
     checked = 0
     for e in range(ENVS):

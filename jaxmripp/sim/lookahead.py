@@ -102,8 +102,9 @@ def continuation(search: Search, occupancy, top, position, heading, budget_left,
 def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
                      candidates: cands.Candidates, budget_left, flights: int):
     """(L,) v(a) of the module docstring for robot i's `branches` best candidates by
-    nbv_team's score, -inf for the others and for infeasible ones. `mine` is the robot's
-    observation (L, F) on `occupancy`, its map with its peers' claims counted as seen."""
+    nbv_team's score, -inf for the others and for infeasible ones, and (L,) that score
+    (the one-step rate). `mine` is the robot's observation (L, F) on `occupancy`, its map
+    with its peers' claims counted as seen."""
     shell = search.params.candidates.shell[1]
     first_gain = layout.view_value(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
                                    search.facade_weight)
@@ -119,7 +120,7 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
 
     values = jax.vmap(value)(order, jax.random.split(key, search.branches))
     values = jnp.where(jnp.isfinite(top_rate), values, -jnp.inf)
-    return jnp.full(rate.shape, -jnp.inf).at[order].set(values)
+    return jnp.full(rate.shape, -jnp.inf).at[order].set(values), rate
 
 
 def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
@@ -127,17 +128,15 @@ def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
     """(N, L) the `ahead_rate` input of `jaxmripp.spec.layout` for the team's observations
     `obs` (FEATURES columns) on their own maps: `lookahead_values` over two flights where
     a candidate is followed, its one-step rate elsewhere. One environment: callers vmap."""
-    ahead, shell = params.ahead, params.candidates.shell[1]
+    ahead = params.ahead
     keys = jax.random.split(key, params.n_robots)
 
     def one(i, features, mask, occupancy, top, c, budget_left, key):
         mine = Observation(features=features, mask=mask, robot_state=None, global_state=None)
         search = Search(params, dyn, state.position, state.heard[i], ahead.facade_weight,
                         ahead.discount, ahead.branches)
-        values = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2)
-        gain = layout.view_value(features[:, _UNKNOWN], features[:, _FACADE],
-                                 ahead.facade_weight)
-        return jnp.where(jnp.isfinite(values), values, view.per_cost(gain, c.cost, shell))
+        values, rate = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2)
+        return jnp.where(jnp.isfinite(values), values, rate)
 
     return jax.vmap(one)(jnp.arange(params.n_robots), obs.features, obs.mask,
                          state.occupancy, state.building_top, state.candidates,
@@ -169,8 +168,8 @@ def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
         search = Search(params, dyn, state.position, state.heard[i], facade_weight, discount,
                         branches)
         c = jax.tree.map(lambda x: x[i], state.candidates)
-        values = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i], c,
-                                  state.budget_left[i], flights)
+        values, _ = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i],
+                                     c, state.budget_left[i], flights)
         return layout.masked_argmax(values + jitter[i], mine.mask, jnp), None
 
     _, actions, _ = claims.in_turn(decide, obs, state, params.sensor,
