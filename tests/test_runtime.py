@@ -27,7 +27,7 @@ from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError,
                               RuntimeSpec, WeightsFormatError)
 from jaxmripp.runtime import FEATURES, ROBOT_STATE
 from jaxmripp.runtime import candidates as np_candidates
-from jaxmripp.runtime import flight, messages, weights
+from jaxmripp.runtime import flight, messages, view, weights
 from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from jaxmripp.spec.flight import SCAN_TURNS
@@ -246,6 +246,50 @@ def test_candidates_match_jax_sampler_given_the_same_uniforms():
         np.testing.assert_allclose(got.cost, want.cost, atol=1e-6)
         rejected.append(int((~got.valid).sum()))
     assert max(rejected) > 0  # the rules did reject something
+
+
+def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
+    """The lookahead's batched forms (sample_many, view_gain and after_views over B maps)
+    give what B separate calls on B separate maps give."""
+    spec = spec_of()
+    g, rng = spec.size, np.random.default_rng(4)
+    base = np.full((g, g, g), UNKNOWN, np.int8)
+    base[8:22, 8:22, 6:24] = FREE  # known around the poses, unknown beyond
+    base[14:17, 10:20, :12] = OCCUPIED
+    top = np.zeros((g, g), np.int8)
+    top[14:17, 10:20] = 12
+    maps = np.repeat(base.reshape(1, -1), 4, axis=0)
+    for b in range(4):  # each map with its own unknown patch among the poses
+        maps[b].reshape(g, g, g)[9 + 3 * b:13 + 3 * b, 9:21, 7:22] = UNKNOWN
+    position = rng.uniform(0.4, 0.6, (4, 3)).astype(np.float32)
+    heading, budget = np.array([0, 1, 2, 3]), np.float32([0.2, 0.3, 0.25, 0.05])
+    uniforms = rng.random((4, spec.positions * spec.oversample - 1, 3), np.float32)
+    others = np.float32([[0.45, 0.4, 0.38]])
+    many = np_candidates.sample_many(uniforms, position, heading, budget, maps, g, others,
+                                     spec)
+    gains = view.view_gain(maps, top, many.position, many.heading, spec.fov_deg,
+                           spec.sensor_range, g)
+    # A map with unknown voxels scattered everywhere, so that every pose sees some.
+    patchy = np.where(rng.random(g ** 3) < 0.3, UNKNOWN, base.reshape(-1)).astype(np.int8)
+    after = view.after_views(patchy, top, position, heading, spec.fov_deg,
+                             spec.sensor_range, g)
+    for b in range(4):
+        one_map = OccupancyMap(g)
+        one_map.codes[:] = maps[b]
+        one = np_candidates.sample(uniforms[b], position[b], heading[b], budget[b], one_map,
+                                   others, spec)
+        for got, want in zip(many, one):
+            np.testing.assert_array_equal(got[b], want)
+        for got, want in zip(gains, view.view_gain(maps[b], top, one.position, one.heading,
+                                                   spec.fov_deg, spec.sensor_range, g)):
+            np.testing.assert_array_equal(got[b], want)
+        # after_views: the map with what pose b sees of it counted as FREE, and no more.
+        seen = [view.view_gain(m, top, position[b:b + 1], heading[b:b + 1], spec.fov_deg,
+                               spec.sensor_range, g)[0][0] for m in (patchy, after[b])]
+        assert seen[0] > 0 and seen[1] == 0
+        changed = after[b] != patchy
+        assert np.all(after[b][changed] == FREE) and np.all(patchy[changed] == UNKNOWN)
+    assert any(many.valid[b].sum() != many.valid[0].sum() for b in range(1, 4))
 
 
 # ---------------------------------------------------------------------------------------

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxmripp.runtime import flight
-from jaxmripp.runtime.mapping import N_HEADINGS, OccupancyMap, inside_world
+from jaxmripp.runtime.mapping import N_HEADINGS, OccupancyMap, inside_world, known_free
 from jaxmripp.runtime.weights import RuntimeSpec
 
 F32 = np.float32
@@ -53,47 +53,74 @@ def sample(
     """uniforms (K * oversample - 1, 3) in [0, 1) float32 -> this robot's candidates.
 
     `stats`, if given, receives how many of the draws each rule rejected (for messages)."""
-    position = np.asarray(position, F32)
+    many = sample_many(np.asarray(uniforms, F32)[None], np.asarray(position, F32)[None],
+                       np.asarray([heading]), np.asarray([budget_left], F32),
+                       occupancy.codes, occupancy.size, others, spec, stats)
+    return Candidates(*(field[0] for field in many))
+
+
+def sample_many(
+    uniforms: np.ndarray,
+    position: np.ndarray,
+    heading: np.ndarray,
+    budget_left: np.ndarray,
+    codes: np.ndarray,
+    size: int,
+    others: np.ndarray,
+    spec: RuntimeSpec,
+    stats: dict | None = None,
+) -> Candidates:
+    """`sample` for B poses at once: uniforms (B, K * oversample - 1, 3), positions (B, 3),
+    headings (B,), budgets left (B,), flat codes (G^3,) of one map or (B, G^3) of one map
+    per pose -> Candidates with fields (B, L, ...). `stats` sums over the poses."""
+    position = np.asarray(position, F32)[:, None, :]  # (B, 1, 3)
+    heading = np.asarray(heading)[:, None, None]
+    budget_left = np.asarray(budget_left, F32)[:, None, None]
     k = spec.positions
     n_draws = k * spec.oversample
-    u = np.asarray(uniforms, F32).reshape(n_draws - 1, 3)
+    u = np.asarray(uniforms, F32).reshape(len(position), n_draws - 1, 3)
     lo, hi = spec.shell
-    z = F32(2.0) * u[:, 0] - F32(1.0)
-    azimuth = F32(2.0 * np.pi) * u[:, 1]
+    z = F32(2.0) * u[..., 0] - F32(1.0)
+    azimuth = F32(2.0 * np.pi) * u[..., 1]
     rho = np.sqrt(np.maximum(F32(0.0), F32(1.0) - z * z))
     direction = np.stack([rho * np.cos(azimuth), rho * np.sin(azimuth), z], axis=-1)
-    offset = (F32(lo) + F32(hi - lo) * u[:, 2:3]) * direction
-    drawn = position + np.concatenate([np.zeros((1, 3), F32), offset])
-    distance = np.linalg.norm(drawn - position, axis=-1).astype(F32)
+    offset = (F32(lo) + F32(hi - lo) * u[..., 2:3]) * direction
+    drawn = position + np.concatenate([np.zeros((len(u), 1, 3), F32), offset], axis=1)
+    distance = np.linalg.norm(drawn - position, axis=-1).astype(F32)  # (B, D)
 
+    # Each rule is judged on the draws the previous ones kept: outside draws are not
+    # traversed, blocked ones not checked against the robots.
     inside = inside_world(drawn)
-    free = inside.copy()  # draws outside the world are rejected anyway: not traversed
-    free[inside] = occupancy.known_free(position, drawn[inside], max_length=hi)
+    free = inside.copy()
+    free[inside] = known_free(codes, np.broadcast_to(position, drawn.shape)[inside],
+                              drawn[inside], size, hi, rows=np.nonzero(inside)[0])
     apart = free.copy()
-    apart[free] = flight.clear_of_robots(position, drawn[free], others,
-                                         spec.collision_distance)
+    apart[free] = flight.clear_of_robots(np.broadcast_to(position, drawn.shape)[free],
+                                         drawn[free], others, spec.collision_distance)
     place_ok = inside & free & apart
 
     headings = np.arange(N_HEADINGS, dtype=np.int32)
-    turns = headings != heading
-    cost = distance[:, None] + F32(spec.turn_cost) * turns.astype(F32)
+    turns = headings != heading  # (B, 1, 4)
+    cost = distance[..., None] + F32(spec.turn_cost) * turns.astype(F32)  # (B, D, 4)
     is_current = (np.arange(n_draws) == 0)[:, None] & ~turns
-    pose_ok = place_ok[:, None] & (cost <= F32(budget_left)) & ~is_current
+    pose_ok = place_ok[..., None] & (cost <= budget_left) & ~is_current
     keep = np.any(pose_ok, axis=-1)
     if stats is not None:
-        stats.update(draws=n_draws, outside=int((~inside).sum()),
+        stats.update(draws=keep.size, outside=int((~inside).sum()),
                      blocked=int((inside & ~free).sum()),
                      crowded=int((inside & free & ~apart).sum()),
                      over_budget=int((place_ok & ~keep).sum()))
 
-    slot = np.argsort(~keep, kind="stable")[:k]
-    kept = keep[slot]
-    slot_position = np.where(kept[:, None], drawn[slot], position)
-    slot_cost = np.where(kept[:, None], cost[slot], cost[0])
-    slot_valid = pose_ok[slot] & kept[:, None]
+    slot = np.argsort(~keep, axis=-1, kind="stable")[:, :k]  # (B, K)
+    kept = np.take_along_axis(keep, slot, axis=-1)[..., None]
+    take = lambda x: np.take_along_axis(x, slot[..., None], axis=1)  # noqa: E731
+    slot_position = np.where(kept, take(drawn), position)
+    slot_cost = np.where(kept, take(cost), cost[:, :1])
+    slot_valid = take(pose_ok) & kept
+    b = len(u)
     return Candidates(
-        position=np.repeat(slot_position, N_HEADINGS, axis=0).astype(F32),
-        heading=np.tile(headings, k),
-        cost=slot_cost.reshape(-1).astype(F32),
-        valid=slot_valid.reshape(-1),
+        position=np.repeat(slot_position, N_HEADINGS, axis=1).astype(F32),
+        heading=np.tile(headings, (b, k)),
+        cost=slot_cost.reshape(b, -1).astype(F32),
+        valid=slot_valid.reshape(b, -1),
     )

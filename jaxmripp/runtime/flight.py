@@ -43,14 +43,15 @@ def _least_gap(r0, w, hi) -> np.ndarray:
 
 
 def clear_of_robots(start, ends, others, collision_distance) -> np.ndarray:
-    """(3,), (M, 3), (R, 3) robots heard -> (M,) True where the flight start -> end keeps
-    more than d_c from every robot heard, each hovering where it was heard."""
+    """Starts (3,) or (M, 3), ends (M, 3), (R, 3) robots heard -> (M,) True where the
+    flight start -> end keeps more than d_c from every robot heard, each hovering where it
+    was heard."""
     ends = np.asarray(ends, F32).reshape(-1, 3)
     others = np.asarray(others, F32).reshape(-1, 3)
     if len(others) == 0:
         return np.ones(len(ends), bool)
     m, n = len(ends), len(others)
-    a0 = np.broadcast_to(np.asarray(start, F32), (m, n, 3))
+    a0 = np.broadcast_to(np.asarray(start, F32).reshape(-1, 1, 3), (m, n, 3))
     a1 = np.broadcast_to(ends[:, None, :], (m, n, 3))
     b = np.broadcast_to(others[None], (m, n, 3))
     gap = closest_approach(a0, a1, b, b)

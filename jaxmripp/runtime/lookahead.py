@@ -12,7 +12,7 @@ import numpy as np
 
 from jaxmripp.runtime import candidates as cands
 from jaxmripp.runtime import view
-from jaxmripp.runtime.mapping import FREE, OccupancyMap
+from jaxmripp.runtime.mapping import OccupancyMap
 from jaxmripp.runtime.weights import RuntimeSpec
 from jaxmripp.spec import layout
 
@@ -32,31 +32,33 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
                 others: np.ndarray, spec: RuntimeSpec) -> np.ndarray:
     """(L,) float32 `ahead_rate` for candidates `c` with FEATURES columns `features`
     (L, F), feasibility `mask` (L,), on the robot's map with the robots heard this round at
-    `others` (M, 3); `uniforms` has `draw_shape(spec)`."""
+    `others` (M, 3); `uniforms` has `draw_shape(spec)`. The followed candidates are
+    searched together, each on its own copy of the map."""
     weight, discount = F32(spec.ahead_facade_weight), F32(spec.ahead_discount)
     shell = spec.shell[1]
     gain = layout.view_value(features[:, _UNKNOWN], features[:, _FACADE], weight)
     rate = view.per_cost(gain, c.cost, shell)
     ranked = np.where(mask, rate, -np.inf).astype(F32)
     followed = np.argsort(-ranked, kind="stable")[:spec.ahead_branches]
+    # The j-th best candidate takes the j-th block of draws; an infeasible one is skipped.
+    draws = np.asarray(uniforms, F32).reshape(draw_shape(spec))[:len(followed)]
+    feasible = np.isfinite(ranked[followed])
+    first, draws = followed[feasible], draws[feasible]
     values = rate.copy()
-    after = OccupancyMap(occupancy.size)
-    after.top = occupancy.top
-    for first, draws in zip(followed, np.asarray(uniforms, F32).reshape(draw_shape(spec))):
-        if not np.isfinite(ranked[first]):
-            continue  # an infeasible candidate is not followed
-        heading = int(c.heading[first])
-        after.codes = occupancy.codes.copy()
-        after.codes[view.unknown_in_view(occupancy.codes, occupancy.top, c.position[first],
-                                         heading, spec.fov_deg, spec.sensor_range,
-                                         occupancy.size)] = FREE
-        following = cands.sample(draws, c.position[first], heading,
-                                 F32(budget_left) - c.cost[first], after, others, spec)
-        unknown, facade = view.view_gain(after.codes, after.top, following.position,
-                                         following.heading, spec.fov_deg, spec.sensor_range,
-                                         occupancy.size)
-        rates = view.per_cost(gain[first] + discount * layout.view_value(unknown, facade, weight),
-                              c.cost[first] + discount * following.cost, shell)
-        if following.valid.any():
-            values[first] = max(rate[first], rates[following.valid].max())
+    if not len(first):
+        return values.astype(F32)
+    after = view.after_views(occupancy.codes, occupancy.top, c.position[first],
+                             c.heading[first], spec.fov_deg, spec.sensor_range, occupancy.size)
+    following = cands.sample_many(draws, c.position[first], c.heading[first],
+                                  F32(budget_left) - c.cost[first], after, occupancy.size,
+                                  others, spec)
+    unknown, facade = view.view_gain(after, occupancy.top, following.position,
+                                     following.heading, spec.fov_deg, spec.sensor_range,
+                                     occupancy.size)
+    rates = view.per_cost(gain[first, None] + discount * layout.view_value(unknown, facade,
+                                                                          weight),
+                          c.cost[first, None] + discount * following.cost, shell)
+    best = np.max(np.where(following.valid, rates, -np.inf), axis=-1)
+    values[first] = np.where(following.valid.any(axis=-1), np.maximum(rate[first], best),
+                             rate[first])
     return values.astype(F32)

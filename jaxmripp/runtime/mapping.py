@@ -36,9 +36,9 @@ def inside_world(position: np.ndarray) -> np.ndarray:
 
 def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | None = None
              ) -> tuple[np.ndarray, np.ndarray]:
-    """(3,), (..., 3) ends -> voxels (..., V, 3) int64 and entry (..., V) float32: every
-    voxel the line of flight start -> end traverses (the rule of `jaxmripp.spec.grid`),
-    each with the t in [0, 1] where the flight enters it.
+    """Starts (3,) or (..., 3), ends (..., 3) -> voxels (..., V, 3) int32 and entry
+    (..., V) float32: every voxel each line of flight start -> end traverses (the rule of
+    `jaxmripp.spec.grid`), each with the t in [0, 1] where the flight enters it.
 
     Slots: the start voxel, the leaving voxel, per crossing of each axis the voxel owning
     the crossing point and the voxel after it, and the end voxel; unused slots repeat the
@@ -49,40 +49,81 @@ def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | 
     side's static bound) is accepted for the same signature and not needed here.
     """
     g = F32(size)
-    s = np.asarray(start, F32).reshape(3) * g  # (3,)
     e = np.asarray(end, F32) * g  # (..., 3)
-    shape = e.shape[:-1]
-    e = e.reshape(-1, 3)
+    s = np.asarray(start, F32) * g
+    shape = np.broadcast_shapes(e.shape, s.shape)[:-1]
+    e = np.broadcast_to(e, (*shape, 3)).reshape(-1, 3)
+    s = np.broadcast_to(s, (*shape, 3)).reshape(-1, 3)  # (M, 3)
     d = e - s  # (M, 3)
     span = float(np.max(np.abs(d), initial=0.0))
     c = int(math.ceil(span)) + 1
-    step = np.sign(d).astype(np.int64)
-    leave = np.where(d < 0, np.ceil(s) - F32(1), np.floor(s)).astype(np.int64)  # (M, 3)
+    step = np.sign(d).astype(np.int32)
+    leave = np.where(d < 0, np.ceil(s) - F32(1), np.floor(s)).astype(np.int32)  # (M, 3)
     k = np.arange(1, c + 1, dtype=F32)
-    up, down = np.floor(s)[:, None] + k, np.ceil(s)[:, None] - k  # (3, c)
+    up, down = np.floor(s)[..., None] + k, np.ceil(s)[..., None] - k  # (M, 3, c)
     plane = np.where(d[..., None] > 0, up, down)  # (M, 3, c)
     crossed = np.where(d[..., None] > 0, plane < e[..., None], plane > e[..., None]) \
         & (d[..., None] != 0)
     safe_d = np.where(d == 0, F32(1), d)[..., None]
     with np.errstate(invalid="ignore", over="ignore"):
-        t = np.where(crossed, (plane - s[:, None]) / safe_d, F32(np.inf)).astype(F32)
+        t = np.where(crossed, (plane - s[..., None]) / safe_d, F32(np.inf)).astype(F32)
     events = t.reshape(len(e), -1)  # (M, 3c)
-    # Per event and axis: crossings of that axis at or before (strictly before) the event.
-    at_or_before = np.sum(t[:, None] <= events[:, :, None, None], axis=-1)  # (M, 3c, 3)
-    before = np.sum(t[:, None] < events[:, :, None, None], axis=-1)
+    at_or_before, before = _crossings_up_to(events, c)
     after_voxel = leave[:, None] + step[:, None] * at_or_before
     point_voxel = leave[:, None] + step[:, None] \
         * np.where(d[:, None] < 0, before, at_or_before)
-    first = np.broadcast_to(np.floor(s).astype(np.int64), (len(e), 1, 3))
+    first = np.floor(s).astype(np.int32)[:, None]  # (M, 1, 3)
     real = np.isfinite(events)[..., None]
     voxels = np.concatenate([
         first, leave[:, None], np.where(real, point_voxel, first),
-        np.where(real, after_voxel, first), np.floor(e).astype(np.int64)[:, None]], axis=1)
+        np.where(real, after_voxel, first), np.floor(e).astype(np.int32)[:, None]], axis=1)
     zeros, ones = np.zeros((len(e), 2), F32), np.ones((len(e), 1), F32)
     hit = np.where(real[..., 0], events, F32(0))
     entry = np.concatenate([zeros, hit, hit, ones], axis=1)
-    voxels = np.clip(voxels, 0, size - 1)
+    np.clip(voxels, 0, size - 1, out=voxels)
     return voxels.reshape(*shape, -1, 3), entry.reshape(*shape, -1)
+
+
+def known_free(codes: np.ndarray, start: np.ndarray, ends: np.ndarray, size: int,
+               max_length: float, rows: np.ndarray | None = None) -> np.ndarray:
+    """Flat codes (G^3,) of one map, or (B, G^3) of several with `rows` (...) int the map
+    of each flight; starts (3,) or (..., 3), ends (..., 3) -> (...) True where every voxel
+    the flight start -> end traverses is FREE in its map."""
+    ends = np.asarray(ends, F32)
+    if ends.size == 0:
+        return np.zeros(ends.shape[:-1], bool)
+    voxels, _ = traverse(start, ends, size, max_length)
+    flat = linear_index(voxels, size)  # (..., V)
+    known = codes[flat] if codes.ndim == 1 else codes[np.asarray(rows)[..., None], flat]
+    return np.all(known == FREE, axis=-1)
+
+
+def _crossings_up_to(events: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
+    """Crossing times (M, 3c), axis-major with each axis's c times ascending -> per event
+    and axis (M, 3c, 3) int32: the crossings of that axis at or before the event, and
+    those strictly before it. Counted on the events sorted per segment (the crossings up
+    to the last of an event's equal times, and up to before the first of them), which
+    gives the comparison of every pair of events without its c^2 cost."""
+    m, n = events.shape
+    order = np.argsort(events, axis=1, kind="stable")
+    ranked = np.take_along_axis(events, order, axis=1)
+    axis = (order // c)[..., None] == np.arange(3)  # (M, 3c, 3) the sorted events' axes
+    upto = np.zeros((m, n + 1, 3), np.int32)  # row i: crossings among the i first sorted
+    np.cumsum(axis, axis=1, dtype=np.int32, out=upto[:, 1:])
+    index = np.arange(n)
+    starts = np.ones((m, n), bool)
+    starts[:, 1:] = ranked[:, 1:] != ranked[:, :-1]
+    ends = np.ones((m, n), bool)
+    ends[:, :-1] = starts[:, 1:]
+    first = np.maximum.accumulate(np.where(starts, index, 0), axis=1)
+    last = np.minimum.accumulate(np.where(ends, index, n)[:, ::-1], axis=1)[:, ::-1]
+    rank = np.empty_like(order)  # each event's place in the sorted order
+    np.put_along_axis(rank, order, index[None], axis=1)
+    rows = upto.reshape(-1, 3)
+    base = (np.arange(m) * (n + 1))[:, None]
+    at_or_before = rows[base + np.take_along_axis(last, rank, axis=1) + 1]
+    before = rows[base + np.take_along_axis(first, rank, axis=1)]
+    return at_or_before, before
 
 
 def fly_until(start: np.ndarray, end: np.ndarray, blocking: np.ndarray, size: int,
@@ -177,7 +218,4 @@ class OccupancyMap:
         """(3,), (M, 3) -> (M,) True where every voxel the flight start -> end traverses
         is FREE in this map (`jaxmripp.sim.geometry.known_free`)."""
         ends = np.asarray(ends, F32).reshape(-1, 3)
-        if len(ends) == 0:
-            return np.zeros(0, bool)
-        voxels, _ = traverse(start, ends, self.size, max_length)
-        return np.all(self.codes[linear_index(voxels, self.size)] == FREE, axis=-1)
+        return known_free(self.codes, start, ends, self.size, max_length)

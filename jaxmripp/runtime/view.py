@@ -14,9 +14,11 @@ optimisation; with it, XLA may round that sum differently, by one unit in the la
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
-from jaxmripp.runtime.mapping import OCCUPIED, UNKNOWN, voxel_of
+from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, voxel_of
 from jaxmripp.spec import view as spec
 
 F32 = np.float32
@@ -29,49 +31,87 @@ def nearby_tops(top: np.ndarray) -> np.ndarray:
                               padded[1:-1, :-2], padded[1:-1, 2:]])
 
 
+@functools.lru_cache(maxsize=8)
+def _padded_table(fov_deg: float, sensor_range: float, size: int):
+    """The gain table as flat offsets into a grid padded with `margin` OCCUPIED voxels on
+    every side (side = size + 2 margin), wide enough that no sample leaves it: samples
+    outside the world then stop their ray as the spec's rule does, with one lookup each.
+    -> margin, side, offsets into the padded grid (4, R, S) and into its columns
+    (4, R, S), the samples' z offsets (4, R, S), weights (S,)."""
+    offsets, weights = spec.gain_table(fov_deg, sensor_range, size)
+    margin = int(np.abs(offsets).max()) + 1
+    side = size + 2 * margin
+    offsets = offsets.astype(np.int64)
+    column = offsets[..., 0] * side + offsets[..., 1]
+    return margin, side, column * side + offsets[..., 2], column, offsets[..., 2], weights
+
+
 def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
              fov_deg: float, sensor_range: float, size: int):
-    """Poses (L, 3) / (L,) -> the flat voxel index (L, R, S) of every gain sample, which of
-    them are unknown and which facade (both (L, R, S) bool), and the weights (S,)."""
-    offsets, weights = spec.gain_table(fov_deg, sensor_range, size)
-    position = np.asarray(position, F32).reshape(-1, 3)
-    camera = voxel_of(position, size)  # (L, 3)
-    sample = camera[:, None, None, :] + offsets[np.asarray(heading, np.int64).reshape(-1)]
-    inside = np.all((sample >= 0) & (sample < size), axis=-1)
-    x, y, z = (np.clip(sample[..., a], 0, size - 1) for a in range(3))
-    column = x * size + y
-    flat = column * size + z
-    code = np.asarray(codes)[flat]
-    # A sample is clear when no earlier sample of its ray left the grid or hit OCCUPIED.
-    stops = ~inside | (code == OCCUPIED)
+    """Poses (..., 3) / (...) -> the index (P, R, S) of every gain sample of the P poses
+    in its padded map (`_padded_table`; map b at b side^3 onwards), which of them are
+    unknown and which facade (both (P, R, S) bool), and the weights (S,). `codes`:
+    (G^3,), or (B, G^3) for poses (B, L, 3) / (B, L) where pose (b, l) looks into map b."""
+    margin, side, flat_offset, column_offset, z_offset, weights = _padded_table(
+        fov_deg, sensor_range, size)
+    codes = np.asarray(codes)
+    maps = codes.reshape(-1, size, size, size)
+    inner = slice(margin, margin + size)
+    padded = np.full((len(maps), side, side, side), OCCUPIED, np.int8)
+    padded[:, inner, inner, inner] = maps
+    near = np.zeros((side, side), np.int8)
+    near[inner, inner] = nearby_tops(top)
+    heading = np.asarray(heading, np.int64)
+    row = (np.broadcast_to(np.arange(len(maps))[:, None], heading.shape) if codes.ndim == 2
+           else np.zeros(heading.shape, np.int64)).reshape(-1)
+    heading = heading.reshape(-1)
+    camera = voxel_of(np.asarray(position, F32).reshape(-1, 3), size) + margin  # (P, 3)
+    camera_column = camera[:, 0] * side + camera[:, 1]
+    start = row * side ** 3 + camera_column * side + camera[:, 2]
+    index = start[:, None, None] + flat_offset[heading]
+    code = padded.reshape(-1)[index]
+    # A sample is clear when no earlier sample of its ray hit OCCUPIED (the margin is).
+    stops = code == OCCUPIED
     clear = np.ones_like(stops)
     clear[..., 1:] = ~np.logical_or.accumulate(stops, axis=-1)[..., :-1]
-    unknown = clear & inside & (code == UNKNOWN)
-    near = nearby_tops(top).reshape(-1)[column]
-    facade = unknown & (near > 0) & (sample[..., 2] <= near)
-    return flat, unknown, facade, weights
+    unknown = clear & (code == UNKNOWN)
+    near = near.reshape(-1)[camera_column[:, None, None] + column_offset[heading]]
+    z = (camera[:, 2] - margin)[:, None, None] + z_offset[heading]
+    facade = unknown & (near > 0) & (z <= near)
+    return index, unknown, facade, weights
 
 
 def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
               fov_deg: float, sensor_range: float, size: int) -> tuple[np.ndarray, np.ndarray]:
     """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
-    view_facade), each (L,) float32."""
+    view_facade), each (L,) float32; with B maps' codes (B, G^3) (sharing the tops), poses
+    (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b."""
     _, unknown, facade, weights = _samples(codes, top, position, heading, fov_deg,
                                            sensor_range, size)
     total = F32(unknown.shape[1] * int(weights.sum()))
     unknown_sum = (unknown * weights).sum(axis=(1, 2))
     facade_sum = (facade * weights).sum(axis=(1, 2))
     scale = F32(1) / total
-    return unknown_sum.astype(F32) * scale, facade_sum.astype(F32) * scale
+    shape = np.shape(heading)
+    return ((unknown_sum.astype(F32) * scale).reshape(shape),
+            (facade_sum.astype(F32) * scale).reshape(shape))
 
 
-def unknown_in_view(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: int,
-                    fov_deg: float, sensor_range: float, size: int) -> np.ndarray:
-    """The flat indices of one pose's unknown samples: the part of the map it would reveal
-    (`jaxmripp.sim.view.unknown_in_view`)."""
-    flat, unknown, _, _ = _samples(codes, top, position, heading, fov_deg, sensor_range,
-                                   size)
-    return flat[unknown]
+def after_views(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
+                fov_deg: float, sensor_range: float, size: int) -> np.ndarray:
+    """A map's flat (G^3,) codes, poses (B, 3) / (B,) -> (B, G^3) codes: copy b is the map
+    with the unknown voxels pose b sees counted as FREE, the part of the map it would
+    reveal (`jaxmripp.sim.view.unknown_in_view`)."""
+    index, unknown, _, _ = _samples(codes, top, position, heading, fov_deg, sensor_range,
+                                    size)
+    margin, side = _padded_table(fov_deg, sensor_range, size)[:2]
+    padded = index[unknown]  # one map, padded: back to the map's own flat indices
+    x, y, z = (padded // side ** 2 - margin, padded // side % side - margin,
+               padded % side - margin)
+    after = np.repeat(np.asarray(codes)[None], len(index), axis=0)
+    rows = np.broadcast_to(np.arange(len(index))[:, None, None], index.shape)
+    after[rows[unknown], (x * size + y) * size + z] = FREE
+    return after
 
 
 def per_cost(gain: np.ndarray, cost: np.ndarray, shell_outer: float) -> np.ndarray:
