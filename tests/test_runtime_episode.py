@@ -32,7 +32,7 @@ import numpy as np
 import pytest
 
 from jaxmripp.evaluation import baselines
-from jaxmripp.evaluation.planners import in_sectors
+from jaxmripp.sim.observation import in_sectors
 from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export

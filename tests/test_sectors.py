@@ -12,7 +12,8 @@ import pytest
 
 from jaxmripp.config import from_dict
 from jaxmripp.evaluation.baselines import random_planner
-from jaxmripp.evaluation.planners import deployed, in_sectors
+from jaxmripp.evaluation.planners import deployed
+from jaxmripp.sim.observation import in_sectors
 from jaxmripp.sim import env
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import sectors

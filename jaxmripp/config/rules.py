@@ -120,6 +120,7 @@ RULES: dict[str, tuple] = {
     "train.updates": _range(0, 10**9),
     "train.updates_per_chunk": _range(1, 10**6),
     "train.keep_checkpoints": _range(1, 1000),
+    "train.radio_ranges": _each(_NONNEG),
     "train.blocks": _range(0, 1 << 20),
     "train.eval_worlds": _range(1, 100_000),
     "train.eval_budget": _POSITIVE,

@@ -175,6 +175,12 @@ class TrainConfig:
     # training run's folder (its last checkpoint) or an export (policy.npz), e.g. to
     # continue a policy trained with fewer robots. "" = random initialisation.
     init_from: str = ""
+    # Chunk i trains at radio range radio_ranges[i % len] (empty: radio.range throughout),
+    # so that one policy meets the short ranges the evaluation tests as well as the long.
+    radio_ranges: tuple[float, ...] = ()
+    # Robots keep to their sectors while the radio range is short (jaxmripp.spec.sectors),
+    # in training rollouts as eval.sectors does in sweeps.
+    sectors: bool = False
     keep_checkpoints: int = 3
     eval_worlds: int = 100
     eval_budget: float = 10.0

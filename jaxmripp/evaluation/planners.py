@@ -8,8 +8,8 @@ from jaxmripp.config import Config, SensorConfig
 from jaxmripp.evaluation import baselines
 from jaxmripp.sim import claims
 from jaxmripp.sim.episode import Planner
+from jaxmripp.sim.observation import in_sectors
 from jaxmripp.sim.params import EnvParams
-from jaxmripp.spec import sectors as sectors_spec
 
 
 def policy_planner(network, params, width: int, name: str = "policy",
@@ -47,16 +47,6 @@ def deployed(planner: Planner, sectors: bool) -> Planner:
         return planner.act(key, memory, in_sectors(obs, state, dyn), state, dyn)
 
     return Planner(planner.name, planner.init, act)
-
-
-def in_sectors(obs, state, dyn):
-    """The team's observations (N, ...) with the sector rule of `jaxmripp.spec.sectors`
-    applied to their masks (where it applies at dyn.radio_range)."""
-    n = obs.mask.shape[0]
-    own = sectors_spec.own_sector(state.candidates.position, dyn.start,
-                                  jnp.arange(n)[:, None], n, xp=jnp)
-    mask = sectors_spec.sector_mask(obs.mask, obs.features, own)
-    return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))
 
 
 def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:

@@ -25,7 +25,7 @@ from flax import struct
 from jaxmripp.sim import claims, env as envmod, lookahead, oracle
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
-from jaxmripp.sim.observation import Observation
+from jaxmripp.sim.observation import Observation, in_sectors
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
 from jaxmripp.parallel.blocks import map_blocks, sum_blocks
 from jaxmripp.parallel.mesh import DataParallel
@@ -185,21 +185,24 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         runner, pool_used = carry
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
+        offered = runner.obs
+        if cfg.train.sectors:
+            offered = jax.vmap(in_sectors, in_axes=(0, 0, None))(offered, runner.env_state, dyn)
         if cfg.policy.claims:
             memory, action, log_prob, value, decided = act_in_turn(
-                network, net_params, runner.memory, runner.obs, act_keys, runner.env_state,
+                network, net_params, runner.memory, offered, act_keys, runner.env_state,
                 params, cfg.train.blocks, data)
         else:
             memory, action, log_prob, value = act(network, net_params, runner.memory,
-                                                  runner.obs, act_keys, cfg.train.blocks, data)
-            decided = runner.obs
+                                                  offered, act_keys, cfg.train.blocks, data)
+            decided = offered
         active = jnp.any(runner.obs.mask, axis=-1)
         choice = None
         if teach is not None:
             team = jax.vmap(lambda k, o, s: teach(k, o, s, dyn))
             choice = jax.lax.cond(teacher.weight > 0, team,
                                   lambda *_: jnp.full_like(action, NO_CHOICE),
-                                  act_keys, runner.obs, runner.env_state)
+                                  act_keys, offered, runner.env_state)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
             dyn, reset_obs, reset_state, max_resets, pool_used)

@@ -71,6 +71,14 @@ class Trainer:
         return cls(cfg, env_params, data.put_replicated(DynamicParams.from_config(cfg)),
                    network, optimizer, data, chunk)
 
+    def chunk_dynamic(self, index: int) -> DynamicParams:
+        """The dynamic parameters chunk `index` trains with (`train.radio_ranges`)."""
+        ranges = self.cfg.train.radio_ranges
+        if not ranges:
+            return self.env_dynamic
+        return self.data.put_replicated(
+            self.env_dynamic.with_values(radio_range=ranges[index % len(ranges)]))
+
     def place(self, state: TrainState) -> TrainState:
         """The state replicated over the devices (every process passes the same state)."""
         return self.data.put_replicated(state)
@@ -208,7 +216,7 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
             log(f"stopped after {stop_after_chunks} chunk(s) as asked; --resume continues")
             break
         start = time.perf_counter()
-        state, metrics = trainer.chunk(state, trainer.env_dynamic)
+        state, metrics = trainer.chunk(state, trainer.chunk_dynamic(index))
         record = summarise(metrics, cfg)
         seconds = time.perf_counter() - start
         updates = int(state.update)

@@ -32,6 +32,7 @@ from jaxmripp.sim.types import EnvState, discovered_fraction
 # of the utility and communication GPs; path cost; budget left after the move.
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
 from jaxmripp.spec.layout import FEATURE_GROUPS, FEATURES, ROBOT_STATE
+from jaxmripp.spec import sectors as sectors_spec
 
 N_FEATURES = len(FEATURES)  # F = 21
 N_ROBOT_STATE = len(ROBOT_STATE)  # S = 9
@@ -128,3 +129,13 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     return Observation(features=features.astype(jnp.float32), mask=mask,
                        robot_state=robot_state.astype(jnp.float32),
                        global_state=jnp.broadcast_to(global_state, (n, global_state.shape[0])))
+
+
+def in_sectors(obs, state, dyn):
+    """The team's observations (N, ...) with the sector rule of `jaxmripp.spec.sectors`
+    applied to their masks (where it applies at dyn.radio_range)."""
+    n = obs.mask.shape[0]
+    own = sectors_spec.own_sector(state.candidates.position, dyn.start,
+                                  jnp.arange(n)[:, None], n, xp=jnp)
+    mask = sectors_spec.sector_mask(obs.mask, obs.features, own)
+    return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))
