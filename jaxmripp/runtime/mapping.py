@@ -90,12 +90,21 @@ def known_free(codes: np.ndarray, start: np.ndarray, ends: np.ndarray, size: int
     of each flight; starts (3,) or (..., 3), ends (..., 3) -> (...) True where every voxel
     the flight start -> end traverses is FREE in its map."""
     ends = np.asarray(ends, F32)
-    if ends.size == 0:
-        return np.zeros(ends.shape[:-1], bool)
-    voxels, _ = traverse(start, ends, size, max_length)
-    flat = linear_index(voxels, size)  # (..., V)
-    known = codes[flat] if codes.ndim == 1 else codes[np.asarray(rows)[..., None], flat]
-    return np.all(known == FREE, axis=-1)
+    start = np.broadcast_to(np.asarray(start, F32), ends.shape)
+    rows = None if codes.ndim == 1 else np.broadcast_to(np.asarray(rows), ends.shape[:-1])
+
+    def code(flat, rows):
+        return codes[flat] if rows is None else codes[rows, flat]
+
+    # The end voxel, which every traversal lists, first: flights ending in a voxel not
+    # known FREE need no traversal.
+    free = code(linear_index(voxel_of(ends, size), size), rows) == FREE
+    if free.any():
+        voxels, _ = traverse(start[free], ends[free], size, max_length)
+        free[free] = np.all(code(linear_index(voxels, size),
+                                 None if rows is None else rows[free][:, None]) == FREE,
+                            axis=-1)
+    return free
 
 
 def _crossings_up_to(events: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
