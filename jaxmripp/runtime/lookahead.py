@@ -52,13 +52,16 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     following = cands.sample_many(draws, c.position[first], c.heading[first],
                                   F32(budget_left) - c.cost[first], after, occupancy.size,
                                   others, spec)
-    unknown, facade = view.view_gain(after, occupancy.top, following.position,
-                                     following.heading, spec.fov_deg, spec.sensor_range,
-                                     occupancy.size)
+    # Only feasible second flights can be taken: only they are looked at.
+    valid = following.valid
+    unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
+    unknown[valid], facade[valid] = view.view_gain(
+        after, occupancy.top, following.position[valid], following.heading[valid],
+        spec.fov_deg, spec.sensor_range, occupancy.size, rows=np.nonzero(valid)[0])
     rates = view.per_cost(gain[first, None] + discount * layout.view_value(unknown, facade,
                                                                           weight),
                           c.cost[first, None] + discount * following.cost, shell)
-    best = np.max(np.where(following.valid, rates, -np.inf), axis=-1)
-    values[first] = np.where(following.valid.any(axis=-1), np.maximum(rate[first], best),
+    best = np.max(np.where(valid, rates, -np.inf), axis=-1)
+    values[first] = np.where(valid.any(axis=-1), np.maximum(rate[first], best),
                              rate[first])
     return values.astype(F32)

@@ -47,11 +47,12 @@ def _padded_table(fov_deg: float, sensor_range: float, size: int):
 
 
 def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-             fov_deg: float, sensor_range: float, size: int):
+             fov_deg: float, sensor_range: float, size: int, rows: np.ndarray | None = None):
     """Poses (..., 3) / (...) -> the index (P, R, S) of every gain sample of the P poses
     in its padded map (`_padded_table`; map b at b side^3 onwards), which of them are
     unknown and which facade (both (P, R, S) bool), and the weights (S,). `codes`:
-    (G^3,), or (B, G^3) for poses (B, L, 3) / (B, L) where pose (b, l) looks into map b."""
+    (G^3,), or (B, G^3) with `rows` (...) the map each pose looks into (default: poses
+    (B, L, 3) / (B, L), pose (b, l) in map b)."""
     margin, side, flat_offset, column_offset, z_offset, weights = _padded_table(
         fov_deg, sensor_range, size)
     codes = np.asarray(codes)
@@ -62,8 +63,11 @@ def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: 
     near = np.zeros((side, side), np.int8)
     near[inner, inner] = nearby_tops(top)
     heading = np.asarray(heading, np.int64)
-    row = (np.broadcast_to(np.arange(len(maps))[:, None], heading.shape) if codes.ndim == 2
-           else np.zeros(heading.shape, np.int64)).reshape(-1)
+    if codes.ndim == 1:
+        rows = np.zeros(heading.shape, np.int64)
+    elif rows is None:
+        rows = np.broadcast_to(np.arange(len(maps))[:, None], heading.shape)
+    row = np.asarray(rows).reshape(-1)
     heading = heading.reshape(-1)
     camera = voxel_of(np.asarray(position, F32).reshape(-1, 3), size) + margin  # (P, 3)
     camera_column = camera[:, 0] * side + camera[:, 1]
@@ -82,12 +86,14 @@ def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: 
 
 
 def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-              fov_deg: float, sensor_range: float, size: int) -> tuple[np.ndarray, np.ndarray]:
+              fov_deg: float, sensor_range: float, size: int, rows: np.ndarray | None = None
+              ) -> tuple[np.ndarray, np.ndarray]:
     """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
     view_facade), each (L,) float32; with B maps' codes (B, G^3) (sharing the tops), poses
-    (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b."""
+    (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b, or poses (L, 3) / (L,)
+    with `rows` (L,) -> each (L,), pose l seen in map rows[l]."""
     _, unknown, facade, weights = _samples(codes, top, position, heading, fov_deg,
-                                           sensor_range, size)
+                                           sensor_range, size, rows)
     total = F32(unknown.shape[1] * int(weights.sum()))
     unknown_sum = (unknown * weights).sum(axis=(1, 2))
     facade_sum = (facade * weights).sum(axis=(1, 2))
