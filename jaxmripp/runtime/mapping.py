@@ -40,13 +40,14 @@ def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | 
     (..., V) float32: every voxel each line of flight start -> end traverses (the rule of
     `jaxmripp.spec.grid`), each with the t in [0, 1] where the flight enters it.
 
-    Slots: the start voxel, the leaving voxel, per crossing of each axis the voxel owning
-    the crossing point and the voxel after it, and the end voxel; unused slots repeat the
-    start voxel with entry 0. The crossing times are the spec's float32 (p - s) / d, so
-    the voxels and their first entries equal those of `jaxmripp.sim.geometry.traverse`
-    (whose slots are laid out by crossing time instead). The slot count fits the longest
-    segment given, so every list is complete whatever its length; `max_length` (the JAX
-    side's static bound) is accepted for the same signature and not needed here.
+    Slots: the start voxel, the leaving voxel, per crossing of a voxel boundary in time
+    order (crossings at the same time in x, y, z order) the voxel owning the crossing
+    point, then per crossing the voxel after it, and the end voxel; unused slots repeat
+    the start voxel with entry 0. The crossing times are the spec's float32 (p - s) / d,
+    so the voxels and their first entries equal those of `jaxmripp.sim.geometry.traverse`.
+    The slot count fits the segment with the most crossings, so every list is complete
+    whatever its length; `max_length` (the JAX side's static bound) is accepted for the
+    same signature and not needed here.
     """
     g = F32(size)
     e = np.asarray(end, F32) * g  # (..., 3)
@@ -67,8 +68,7 @@ def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | 
     safe_d = np.where(d == 0, F32(1), d)[..., None]
     with np.errstate(invalid="ignore", over="ignore"):
         t = np.where(crossed, (plane - s[..., None]) / safe_d, F32(np.inf)).astype(F32)
-    events = t.reshape(len(e), -1)  # (M, 3c)
-    at_or_before, before = _crossings_up_to(events, c)
+    events, at_or_before, before = _crossings_up_to(t.reshape(len(e), -1), c)
     after_voxel = leave[:, None] + step[:, None] * at_or_before
     point_voxel = leave[:, None] + step[:, None] \
         * np.where(d[:, None] < 0, before, at_or_before)
@@ -107,32 +107,29 @@ def known_free(codes: np.ndarray, start: np.ndarray, ends: np.ndarray, size: int
     return free
 
 
-def _crossings_up_to(events: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray]:
-    """Crossing times (M, 3c), axis-major with each axis's c times ascending -> per event
-    and axis (M, 3c, 3) int32: the crossings of that axis at or before the event, and
-    those strictly before it. Counted on the events sorted per segment (the crossings up
-    to the last of an event's equal times, and up to before the first of them), which
-    gives the comparison of every pair of events without its c^2 cost."""
-    m, n = events.shape
+def _crossings_up_to(events: np.ndarray, c: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Crossing times (M, 3c), axis-major (inf: no crossing) -> the crossings in time
+    order (M, n), n the most any segment has (ties in axis order), and per crossing and
+    axis (M, n, 3) int32 the crossings of that axis at or before it and strictly before
+    it: the counts up to the last and up to before the first of its equal times, which
+    replace the comparison of every pair of crossings."""
+    m, total = events.shape
     order = np.argsort(events, axis=1, kind="stable")
     ranked = np.take_along_axis(events, order, axis=1)
+    n = int(np.isfinite(ranked).sum(axis=1).max(initial=0))
     axis = (order // c)[..., None] == np.arange(3)  # (M, 3c, 3) the sorted events' axes
-    upto = np.zeros((m, n + 1, 3), np.int32)  # row i: crossings among the i first sorted
+    upto = np.zeros((m, total + 1, 3), np.int32)  # row i: crossings among the i first
     np.cumsum(axis, axis=1, dtype=np.int32, out=upto[:, 1:])
-    index = np.arange(n)
-    starts = np.ones((m, n), bool)
+    index = np.arange(total)
+    starts = np.ones((m, total), bool)
     starts[:, 1:] = ranked[:, 1:] != ranked[:, :-1]
-    ends = np.ones((m, n), bool)
+    ends = np.ones((m, total), bool)
     ends[:, :-1] = starts[:, 1:]
-    first = np.maximum.accumulate(np.where(starts, index, 0), axis=1)
-    last = np.minimum.accumulate(np.where(ends, index, n)[:, ::-1], axis=1)[:, ::-1]
-    rank = np.empty_like(order)  # each event's place in the sorted order
-    np.put_along_axis(rank, order, index[None], axis=1)
+    first = np.maximum.accumulate(np.where(starts, index, 0), axis=1)[:, :n]
+    last = np.minimum.accumulate(np.where(ends, index, total)[:, ::-1], axis=1)[:, ::-1][:, :n]
     rows = upto.reshape(-1, 3)
-    base = (np.arange(m) * (n + 1))[:, None]
-    at_or_before = rows[base + np.take_along_axis(last, rank, axis=1) + 1]
-    before = rows[base + np.take_along_axis(first, rank, axis=1)]
-    return at_or_before, before
+    base = (np.arange(m) * (total + 1))[:, None]
+    return ranked[:, :n], rows[base + last + 1], rows[base + first]
 
 
 def fly_until(start: np.ndarray, end: np.ndarray, blocking: np.ndarray, size: int,
