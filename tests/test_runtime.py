@@ -273,6 +273,16 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
     patchy = np.where(rng.random(g ** 3) < 0.3, UNKNOWN, base.reshape(-1)).astype(np.int8)
     after = view.after_views(patchy, top, position, heading, spec.fov_deg,
                              spec.sensor_range, g)
+    margin = after.margin
+    # The padded copies hold the map inside OCCUPIED margins; both read the same copies.
+    inner = after.codes.reshape(4, g + 2 * margin, g + 2 * margin, g + 2 * margin)[
+        :, margin:-margin, margin:-margin, margin:-margin].reshape(4, -1)
+    assert np.all(np.delete(after.codes.reshape(4, -1), after.index(
+        np.stack(np.unravel_index(np.arange(g ** 3), (g,) * 3), -1)), axis=1) == OCCUPIED)
+    many_after = np_candidates.sample_many(uniforms, position, heading, budget, after, g,
+                                           others, spec)
+    gains_after = view.view_gain(after, top, many.position, many.heading, spec.fov_deg,
+                                 spec.sensor_range, g)
     for b in range(4):
         one_map = OccupancyMap(g)
         one_map.codes[:] = maps[b]
@@ -285,10 +295,19 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
             np.testing.assert_array_equal(got[b], want)
         # after_views: the map with what pose b sees of it counted as FREE, and no more.
         seen = [view.view_gain(m, top, position[b:b + 1], heading[b:b + 1], spec.fov_deg,
-                               spec.sensor_range, g)[0][0] for m in (patchy, after[b])]
+                               spec.sensor_range, g)[0][0] for m in (patchy, inner[b])]
         assert seen[0] > 0 and seen[1] == 0
-        changed = after[b] != patchy
-        assert np.all(after[b][changed] == FREE) and np.all(patchy[changed] == UNKNOWN)
+        changed = inner[b] != patchy
+        assert np.all(inner[b][changed] == FREE) and np.all(patchy[changed] == UNKNOWN)
+        # Sampling and view gains on the padded copies equal those on plain copies.
+        for got, want in zip(many_after, np_candidates.sample_many(
+                uniforms[b:b + 1], position[b:b + 1], heading[b:b + 1], budget[b:b + 1],
+                inner[b], g, others, spec)):
+            np.testing.assert_array_equal(got[b], want[0])
+        for got, want in zip(gains_after, view.view_gain(inner[b], top, many.position[b],
+                                                         many.heading[b], spec.fov_deg,
+                                                         spec.sensor_range, g)):
+            np.testing.assert_array_equal(got[b], want)
     assert any(many.valid[b].sum() != many.valid[0].sum() for b in range(1, 4))
 
 

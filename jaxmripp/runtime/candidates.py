@@ -19,7 +19,8 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxmripp.runtime import flight
-from jaxmripp.runtime.mapping import N_HEADINGS, OccupancyMap, inside_world, known_free
+from jaxmripp.runtime.mapping import (N_HEADINGS, OccupancyMap, PaddedMaps, inside_world,
+                                      known_free)
 from jaxmripp.runtime.weights import RuntimeSpec
 
 F32 = np.float32
@@ -64,15 +65,16 @@ def sample_many(
     position: np.ndarray,
     heading: np.ndarray,
     budget_left: np.ndarray,
-    codes: np.ndarray,
+    codes: np.ndarray | PaddedMaps,
     size: int,
     others: np.ndarray,
     spec: RuntimeSpec,
     stats: dict | None = None,
 ) -> Candidates:
     """`sample` for B poses at once: uniforms (B, K * oversample - 1, 3), positions (B, 3),
-    headings (B,), budgets left (B,), flat codes (G^3,) of one map or (B, G^3) of one map
-    per pose -> Candidates with fields (B, L, ...). `stats` sums over the poses."""
+    headings (B,), budgets left (B,), flat codes (G^3,) of one map or (B, G^3) (or
+    `PaddedMaps`) of one map per pose -> Candidates with fields (B, L, ...). `stats` sums
+    over the poses."""
     position = np.asarray(position, F32)[:, None, :]  # (B, 1, 3)
     heading = np.asarray(heading)[:, None, None]
     budget_left = np.asarray(budget_left, F32)[:, None, None]

@@ -52,7 +52,8 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     following = cands.sample_many(draws, c.position[first], c.heading[first],
                                   F32(budget_left) - c.cost[first], after, occupancy.size,
                                   others, spec)
-    # Only feasible second flights can be taken: only they are looked at.
+    # Only feasible second flights can be taken: only they are looked at (in the padded
+    # copies, as the draws were).
     valid = following.valid
     unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
     unknown[valid], facade[valid] = view.view_gain(

@@ -11,6 +11,7 @@ version is vectorised over many segment ends at once and never runs out of slots
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -84,26 +85,57 @@ def traverse(start: np.ndarray, end: np.ndarray, size: int, max_length: float | 
     return voxels.reshape(*shape, -1, 3), entry.reshape(*shape, -1)
 
 
-def known_free(codes: np.ndarray, start: np.ndarray, ends: np.ndarray, size: int,
-               max_length: float, rows: np.ndarray | None = None) -> np.ndarray:
-    """Flat codes (G^3,) of one map, or (B, G^3) of several with `rows` (...) int the map
-    of each flight; starts (3,) or (..., 3), ends (..., 3) -> (...) True where every voxel
-    the flight start -> end traverses is FREE in its map."""
+class PaddedMaps(NamedTuple):
+    """B maps of side `size`, each inside a grid with `margin` OCCUPIED voxels added on
+    every side, flat: `codes` (B, side^3) int8 with side = size + 2 margin. A lookup up to
+    `margin` voxels outside the map lands on OCCUPIED, which is what the view rule wants
+    of a ray leaving the world (`jaxmripp.runtime.view`)."""
+
+    codes: np.ndarray
+    size: int
+    margin: int
+
+    @property
+    def side(self) -> int:
+        return self.size + 2 * self.margin
+
+    @classmethod
+    def of(cls, codes: np.ndarray, size: int, margin: int) -> "PaddedMaps":
+        """Flat codes (G^3,) of one map or (B, G^3) of several -> their padded copies."""
+        maps = np.asarray(codes).reshape(-1, size, size, size)
+        side, inner = size + 2 * margin, slice(margin, margin + size)
+        padded = np.full((len(maps), side, side, side), OCCUPIED, np.int8)
+        padded[:, inner, inner, inner] = maps
+        return cls(padded.reshape(len(maps), -1), size, margin)
+
+    def index(self, voxel: np.ndarray) -> np.ndarray:
+        """(..., 3) voxels of the map -> (...,) flat indices into a padded grid."""
+        return linear_index(voxel + self.margin, self.side)
+
+
+def known_free(codes: np.ndarray | PaddedMaps, start: np.ndarray, ends: np.ndarray,
+               size: int, max_length: float, rows: np.ndarray | None = None) -> np.ndarray:
+    """Flat codes (G^3,) of one map, or (B, G^3) of several (or their `PaddedMaps`) with
+    `rows` (...) int the map of each flight; starts (3,) or (..., 3), ends (..., 3) -> (...)
+    True where every voxel the flight start -> end traverses is FREE in its map."""
     ends = np.asarray(ends, F32)
     start = np.broadcast_to(np.asarray(start, F32), ends.shape)
-    rows = None if codes.ndim == 1 else np.broadcast_to(np.asarray(rows), ends.shape[:-1])
+    if isinstance(codes, PaddedMaps):
+        table, index = codes.codes, codes.index
+    else:
+        table, index = codes, lambda voxel: linear_index(voxel, size)
+    rows = None if table.ndim == 1 else np.broadcast_to(np.asarray(rows), ends.shape[:-1])
 
-    def code(flat, rows):
-        return codes[flat] if rows is None else codes[rows, flat]
+    def code(voxel, rows):
+        return table[index(voxel)] if rows is None else table[rows, index(voxel)]
 
     # The end voxel, which every traversal lists, first: flights ending in a voxel not
     # known FREE need no traversal.
-    free = code(linear_index(voxel_of(ends, size), size), rows) == FREE
+    free = code(voxel_of(ends, size), rows) == FREE
     if free.any():
         voxels, _ = traverse(start[free], ends[free], size, max_length)
-        free[free] = np.all(code(linear_index(voxels, size),
-                                 None if rows is None else rows[free][:, None]) == FREE,
-                            axis=-1)
+        free[free] = np.all(code(voxels, None if rows is None else rows[free][:, None])
+                            == FREE, axis=-1)
     return free
 
 

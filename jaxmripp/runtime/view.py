@@ -15,10 +15,11 @@ optimisation; with it, XLA may round that sum differently, by one unit in the la
 from __future__ import annotations
 
 import functools
+from typing import NamedTuple
 
 import numpy as np
 
-from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, voxel_of
+from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, PaddedMaps, voxel_of
 from jaxmripp.spec import view as spec
 
 F32 = np.float32
@@ -31,93 +32,106 @@ def nearby_tops(top: np.ndarray) -> np.ndarray:
                               padded[1:-1, :-2], padded[1:-1, 2:]])
 
 
+class GainTable(NamedTuple):
+    """The gain samples of `jaxmripp.spec.view` as offsets into grids padded with `margin`
+    OCCUPIED voxels (`PaddedMaps`), wide enough that no sample leaves them: samples outside
+    the world then stop their ray as the spec's rule does, with one lookup each."""
+
+    margin: int
+    flat: np.ndarray  # (4, R, S) int64 offsets into a padded grid, per heading
+    column: np.ndarray  # (4, R, S) the same into its (side, side) columns
+    z: np.ndarray  # (4, R, S) the samples' z offsets
+    weights: np.ndarray  # (R * S,) float32, the spec's per-sample weights, ray-major
+    scale: np.float32  # 1 / the weights' total, as XLA multiplies by it (module docstring)
+
+
 @functools.lru_cache(maxsize=8)
-def _padded_table(fov_deg: float, sensor_range: float, size: int):
-    """The gain table as flat offsets into a grid padded with `margin` OCCUPIED voxels on
-    every side (side = size + 2 margin), wide enough that no sample leaves it: samples
-    outside the world then stop their ray as the spec's rule does, with one lookup each.
-    -> margin, side, offsets into the padded grid (4, R, S) and into its columns
-    (4, R, S), the samples' z offsets (4, R, S), weights (S,)."""
+def gain_table(fov_deg: float, sensor_range: float, size: int) -> GainTable:
     offsets, weights = spec.gain_table(fov_deg, sensor_range, size)
     margin = int(np.abs(offsets).max()) + 1
     side = size + 2 * margin
     offsets = offsets.astype(np.int64)
     column = offsets[..., 0] * side + offsets[..., 1]
-    return margin, side, column * side + offsets[..., 2], column, offsets[..., 2], weights
+    total = F32(offsets.shape[1] * int(weights.sum()))
+    return GainTable(margin, column * side + offsets[..., 2], column, offsets[..., 2],
+                     np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
 
 
-def _samples(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-             fov_deg: float, sensor_range: float, size: int, rows: np.ndarray | None = None):
+def padded(codes: np.ndarray | PaddedMaps, table: GainTable, size: int) -> PaddedMaps:
+    """Flat codes (G^3,) or (B, G^3), or maps already padded for `table`, as `PaddedMaps`."""
+    if isinstance(codes, PaddedMaps):
+        if codes.margin != table.margin:
+            raise ValueError(f"maps padded with margin {codes.margin}; this sensor's gain "
+                             f"samples need margin {table.margin}")
+        return codes
+    return PaddedMaps.of(codes, size, table.margin)
+
+
+def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarray,
+             heading: np.ndarray, fov_deg: float, sensor_range: float, size: int,
+             rows: np.ndarray | None = None):
     """Poses (..., 3) / (...) -> the index (P, R, S) of every gain sample of the P poses
-    in its padded map (`_padded_table`; map b at b side^3 onwards), which of them are
-    unknown and which facade (both (P, R, S) bool), and the weights (S,). `codes`:
-    (G^3,), or (B, G^3) with `rows` (...) the map each pose looks into (default: poses
+    in the padded maps (map b at b side^3 onwards), which of them are unknown and which
+    facade (both (P, R, S) bool), the maps and the table. `codes`: (G^3,), or (B, G^3) (or
+    their `PaddedMaps`) with `rows` (...) the map each pose looks into (default: poses
     (B, L, 3) / (B, L), pose (b, l) in map b)."""
-    margin, side, flat_offset, column_offset, z_offset, weights = _padded_table(
-        fov_deg, sensor_range, size)
-    codes = np.asarray(codes)
-    maps = codes.reshape(-1, size, size, size)
+    table = gain_table(fov_deg, sensor_range, size)
+    maps = padded(codes, table, size)
+    margin, side = table.margin, maps.side
     inner = slice(margin, margin + size)
-    padded = np.full((len(maps), side, side, side), OCCUPIED, np.int8)
-    padded[:, inner, inner, inner] = maps
     near = np.zeros((side, side), np.int8)
     near[inner, inner] = nearby_tops(top)
     heading = np.asarray(heading, np.int64)
-    if codes.ndim == 1:
+    if len(maps.codes) == 1:
         rows = np.zeros(heading.shape, np.int64)
     elif rows is None:
-        rows = np.broadcast_to(np.arange(len(maps))[:, None], heading.shape)
+        rows = np.broadcast_to(np.arange(len(maps.codes))[:, None], heading.shape)
     row = np.asarray(rows).reshape(-1)
     heading = heading.reshape(-1)
     camera = voxel_of(np.asarray(position, F32).reshape(-1, 3), size) + margin  # (P, 3)
     camera_column = camera[:, 0] * side + camera[:, 1]
     start = row * side ** 3 + camera_column * side + camera[:, 2]
-    index = start[:, None, None] + flat_offset[heading]
-    code = padded.reshape(-1)[index]
+    index = start[:, None, None] + table.flat[heading]
+    code = maps.codes.reshape(-1)[index]
     # A sample is clear when no earlier sample of its ray hit OCCUPIED (the margin is).
     stops = code == OCCUPIED
     clear = np.ones_like(stops)
     clear[..., 1:] = ~np.logical_or.accumulate(stops, axis=-1)[..., :-1]
     unknown = clear & (code == UNKNOWN)
-    near = near.reshape(-1)[camera_column[:, None, None] + column_offset[heading]]
-    z = (camera[:, 2] - margin)[:, None, None] + z_offset[heading]
+    near = near.reshape(-1)[camera_column[:, None, None] + table.column[heading]]
+    z = (camera[:, 2] - margin)[:, None, None] + table.z[heading]
     facade = unknown & (near > 0) & (z <= near)
-    return index, unknown, facade, weights
+    return index, unknown, facade, maps, table
 
 
-def view_gain(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-              fov_deg: float, sensor_range: float, size: int, rows: np.ndarray | None = None
-              ) -> tuple[np.ndarray, np.ndarray]:
+def view_gain(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarray,
+              heading: np.ndarray, fov_deg: float, sensor_range: float, size: int,
+              rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
-    view_facade), each (L,) float32; with B maps' codes (B, G^3) (sharing the tops), poses
-    (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b, or poses (L, 3) / (L,)
-    with `rows` (L,) -> each (L,), pose l seen in map rows[l]."""
-    _, unknown, facade, weights = _samples(codes, top, position, heading, fov_deg,
-                                           sensor_range, size, rows)
-    total = F32(unknown.shape[1] * int(weights.sum()))
-    unknown_sum = (unknown * weights).sum(axis=(1, 2))
-    facade_sum = (facade * weights).sum(axis=(1, 2))
-    scale = F32(1) / total
+    view_facade), each (L,) float32; with B maps' codes (B, G^3) or `PaddedMaps` (sharing
+    the tops), poses (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b, or poses
+    (L, 3) / (L,) with `rows` (L,) -> each (L,), pose l seen in map rows[l]."""
+    _, unknown, facade, _, table = _samples(codes, top, position, heading, fov_deg,
+                                            sensor_range, size, rows)
+    # Weighted counts as one float32 product each: integers far below 2^24, so exact.
+    unknown_sum = unknown.reshape(-1, table.weights.size).astype(F32) @ table.weights
+    facade_sum = facade.reshape(-1, table.weights.size).astype(F32) @ table.weights
     shape = np.shape(heading)
-    return ((unknown_sum.astype(F32) * scale).reshape(shape),
-            (facade_sum.astype(F32) * scale).reshape(shape))
+    return ((unknown_sum * table.scale).reshape(shape),
+            (facade_sum * table.scale).reshape(shape))
 
 
 def after_views(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-                fov_deg: float, sensor_range: float, size: int) -> np.ndarray:
-    """A map's flat (G^3,) codes, poses (B, 3) / (B,) -> (B, G^3) codes: copy b is the map
-    with the unknown voxels pose b sees counted as FREE, the part of the map it would
-    reveal (`jaxmripp.sim.view.unknown_in_view`)."""
-    index, unknown, _, _ = _samples(codes, top, position, heading, fov_deg, sensor_range,
-                                    size)
-    margin, side = _padded_table(fov_deg, sensor_range, size)[:2]
-    padded = index[unknown]  # one map, padded: back to the map's own flat indices
-    x, y, z = (padded // side ** 2 - margin, padded // side % side - margin,
-               padded % side - margin)
-    after = np.repeat(np.asarray(codes)[None], len(index), axis=0)
-    rows = np.broadcast_to(np.arange(len(index))[:, None, None], index.shape)
-    after[rows[unknown], (x * size + y) * size + z] = FREE
-    return after
+                fov_deg: float, sensor_range: float, size: int) -> PaddedMaps:
+    """A map's flat (G^3,) codes, poses (B, 3) / (B,) -> B padded copies of the map (for
+    `view_gain` and `known_free`): copy b with the unknown voxels pose b sees counted as
+    FREE, the part of the map it would reveal (`jaxmripp.sim.view.unknown_in_view`)."""
+    index, unknown, _, one, _ = _samples(codes, top, position, heading, fov_deg,
+                                         sensor_range, size)
+    after = np.repeat(one.codes, len(index), axis=0)
+    copy = np.broadcast_to(np.arange(len(index))[:, None, None], index.shape)
+    after.reshape(-1)[copy[unknown] * after.shape[1] + index[unknown]] = FREE
+    return one._replace(codes=after)
 
 
 def per_cost(gain: np.ndarray, cost: np.ndarray, shell_outer: float) -> np.ndarray:
