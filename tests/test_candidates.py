@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from jaxmripp.sim import candidates, geometry
-from jaxmripp.config import CandidateConfig, RobotConfig
+from jaxmripp.config import CandidateConfig, RobotConfig, SafetyConfig
 
 G = 50
 CAND = CandidateConfig()  # K = 20 positions, shell [0.19, 0.21], oversample 3
@@ -21,10 +21,11 @@ K, L = CAND.positions, CAND.count
 HERE = np.array([0.5, 0.5, 0.5], np.float32)
 H0 = 1  # current heading
 
-sample = jax.jit(functools.partial(candidates.sample, cand=CAND, flight_mode="known_free",
+SAFE = SafetyConfig()  # known_free, no escape
+sample = jax.jit(functools.partial(candidates.sample, cand=CAND, safety=SAFE,
                                    turn_cost=TURN, collision_distance=DC, size=G))
 sample_optimistic = jax.jit(functools.partial(
-    candidates.sample, cand=CAND, flight_mode="optimistic", turn_cost=TURN,
+    candidates.sample, cand=CAND, safety=SafetyConfig(flight="optimistic"), turn_cost=TURN,
     collision_distance=DC, size=G))
 
 
@@ -166,7 +167,7 @@ def test_known_robots_are_kept_at_distance_unknown_ones_ignored():
     others = jnp.asarray(np.stack([HERE, near, far_side]))
     dc = 0.1
     sample_dc = jax.jit(functools.partial(
-        candidates.sample, cand=CAND, flight_mode="known_free", turn_cost=TURN,
+        candidates.sample, cand=CAND, safety=SAFE, turn_cost=TURN,
         collision_distance=dc, size=G))
 
     def run(seed, known):
@@ -189,6 +190,31 @@ def test_known_robots_are_kept_at_distance_unknown_ones_ignored():
         ))
         jax.tree.map(np.testing.assert_array_equal, unknown, baseline)
     assert ignored_close > 0, "the unknown robot's surroundings should stay reachable"
+
+
+def test_robots_within_d_c_are_offered_nothing_or_with_escape_only_flights_apart():
+    """Two robots 0.03 apart (closer than d_c, as after a meeting out of radio range): the
+    rule offers neither robot anything, so the env would retire both; with safety.escape
+    each may turn in place or fly what takes it no closer to the other."""
+    close = HERE + np.array([0.03, 0.0, 0.0], np.float32)
+    others, known = jnp.asarray(np.stack([HERE, close])), jnp.asarray([False, True])
+    stuck = as_np(draw(3, others=others, known=known))
+    assert not stuck.valid.any()
+    parting = jax.jit(functools.partial(
+        candidates.sample, cand=CAND, safety=SafetyConfig(escape=True), turn_cost=TURN,
+        collision_distance=DC, size=G))
+    c = as_np(draw(3, others=others, known=known, sampler=parting))
+    turns = np.arange(4) != H0
+    np.testing.assert_array_equal(c.valid[:4], turns)  # slot 0: turning in place
+    flights = c.position[4:][c.valid[4:]]
+    assert len(flights) > 10
+    # Every flight offered leaves the other robot behind: it heads away from it.
+    assert np.all((flights - HERE) @ (HERE - close) >= 0)
+    # The far robot unheard, both rules offer the same.
+    alone_rule = as_np(draw(3, others=others, known=jnp.asarray([False, False])))
+    alone_escape = as_np(draw(3, others=others, known=jnp.asarray([False, False]),
+                              sampler=parting))
+    jax.tree.map(np.testing.assert_array_equal, alone_rule, alone_escape)
 
 
 def test_cost_is_distance_plus_turn_cost():
@@ -261,7 +287,7 @@ def test_traced_once():
     @chex.assert_max_traces(n=1)
     def traced(key, position, heading, budget, occupancy, others, known, turn_cost, dc):
         return candidates.sample(key, position, heading, budget, occupancy, others, known,
-                                 CAND, "known_free", turn_cost, dc, G)
+                                 CAND, SAFE, turn_cost, dc, G)
 
     others, known = alone()
     for seed, budget, heading, turn, dc in [(0, 10.0, 1, TURN, DC), (1, 0.3, 2, 0.1, 0.02),

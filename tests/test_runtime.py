@@ -21,7 +21,7 @@ from jaxmripp import config, export
 from jaxmripp.sim import gp as jax_gp, observation
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.learn import policy as policymod, ppo
-from jaxmripp.config import GPConfig
+from jaxmripp.config import GPConfig, SafetyConfig
 from jaxmripp.runtime import (Candidates, CorruptWeightsError, InvalidPoseError, MessageError,
                               OnboardPlanner, PlannerStateError, ProtocolVersionError,
                               RuntimeSpec, WeightsFormatError)
@@ -106,7 +106,8 @@ def test_layout_and_header_match_the_written_layout(exported):
     assert c["gp"]["capacity"] == CFG.gp.capacity and c["reward"]["utility_norm"] == 16.0
     assert c["robots"]["turn_cost"] == CFG.robots.turn_cost
     assert c["safety"] == {"flight": CFG.safety.flight, "takeoff_scan": CFG.safety.takeoff_scan,
-                           "intents": CFG.safety.intents, "priority": CFG.safety.priority}
+                           "intents": CFG.safety.intents, "priority": CFG.safety.priority,
+                           "escape": CFG.safety.escape}
     assert c["radio"]["share_maps"] is CFG.radio.share_maps is True
     assert c["sensor"]["fov_deg"] == CFG.sensor.fov_deg
     spec = spec_of()
@@ -235,7 +236,7 @@ def test_candidates_match_jax_sampler_given_the_same_uniforms():
         position, heading, budget = np.float32([0.5, 0.5, 0.3]), seed % 4, 0.2 + 0.05 * seed
         want = jax.tree.map(np.asarray, sample(
             key, position, jnp.int32(heading), jnp.float32(budget), occupancy, others, known,
-            cand, spec.flight, jnp.float32(robots.turn_cost),
+            cand, SafetyConfig(flight=spec.flight), jnp.float32(robots.turn_cost),
             jnp.float32(spec.collision_distance), g))
         uniforms = np.asarray(jax.random.uniform(key, (cand.positions * cand.oversample - 1, 3)))
         got = np_candidates.sample(uniforms, position, heading, np.float32(budget), our_map,

@@ -355,3 +355,28 @@ def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors
     assert len(compared) >= 10 and np.median(compared) > 0.1  # logits are not degenerate
     # The sector rule restricted some decisions (and only with it on).
     assert (narrowed >= 3) if sectors else (narrowed == 0)
+
+
+def test_robots_that_met_out_of_range_part_alike_with_escape():
+    """safety.escape on both sides: robots that came within d_c while out of radio range
+    (rho below the pads' spacing, d_c just under rho) are still offered the flights that
+    take them no closer, and the runtime's filter passes every pose the env offers then."""
+    cfg = config.load(REPO / "configs/smoke.yaml", [
+        "world.size=30", "candidates.positions=8", "candidates.oversample=3",
+        "robots.count=4", "robots.budget=[6.0, 6.0]", "robots.pad_spacing=0.16",
+        "radio.range=0.15", "radio.collision_distance=0.12", "safety.escape=true"])
+    escaping = make_sim(cfg)
+    assert escaping.spec.escape
+    parted = 0
+    for seed in (0, 1, 2):
+        obs, state = escaping.reset(keys_of(seed, 1)[0])
+        planners, decide = greedy_runtime(escaping, float(state.budget_initial))
+        for o, state, decisions, _ in runtime_episode(escaping, seed, planners, decide)[:-1]:
+            position = np.asarray(state.position)
+            gap = np.linalg.norm(position[:, None] - position[None], axis=-1)
+            heard = np.asarray(comms.contacts(state.position, escaping.radio_range))
+            for i, d in enumerate(decisions):
+                assert not np.any(o.mask[i] & ~d.safe), "the filter refused an env pose"
+                close = heard[i] & (gap[i] <= escaping.spec.collision_distance)
+                parted += bool(close.any() and o.mask[i].any())
+    assert parted >= 1, "no robot met another out of range: pick other seeds"

@@ -309,6 +309,34 @@ def test_clear_of_robots_judges_the_whole_flight_and_equals_jax():
     assert flight.clear_of_robots(start, ends, np.zeros((0, 3)), 0.05).all()
 
 
+def test_escape_lets_robots_within_d_c_part_and_equals_jax():
+    """safety.escape: a robot 0.03 from another it hears (closer than d_c) may turn in
+    place or fly what takes it no closer to it, but never through a third robot."""
+    start = F32([0.5, 0.5, 0.5])
+    others = F32([[0.53, 0.5, 0.5], [0.3, 0.5, 0.5]])  # one close by, one on the way out
+    ends = F32([[0.7, 0.5, 0.5],   # towards the close one: no
+                [0.5, 0.5, 0.5],   # turning in place: yes
+                [0.5, 0.7, 0.5],   # sideways, at right angles: yes
+                [0.4, 0.6, 0.5],   # away: yes
+                [0.3, 0.5, 0.5]])  # away, into the second robot: no
+    np.testing.assert_array_equal(flight.clear_of_robots(start, ends, others, 0.05), False)
+    got = flight.clear_of_robots(start, ends, others, 0.05, escape=True)
+    np.testing.assert_array_equal(got, [False, True, True, True, False])
+    # Random flights near random robots, half of them within d_c: the two sides agree.
+    rng = np.random.default_rng(3)
+    starts = rng.uniform(0.3, 0.7, (400, 3)).astype(F32)
+    near = starts + rng.normal(0, 0.03, (400, 3)).astype(F32)
+    ends = np.clip(starts + rng.normal(0, 0.12, (400, 3)), 0, 1).astype(F32)
+    jax_clear = jax.jit(jax.vmap(lambda s, e, o: jax_flight.clear_of_robots(
+        s, e[None], o[None], jnp.ones(1, bool), jnp.float32(0.05), True)[0]))
+    want = np.asarray(jax_clear(starts, ends, near))
+    got = np.array([flight.clear_of_robots(s, e[None], o[None], 0.05, escape=True)[0]
+                    for s, e, o in zip(starts, ends, near)])
+    np.testing.assert_array_equal(got, want)
+    close = np.linalg.norm(starts - near, axis=1) <= 0.05
+    assert close.sum() > 100 and 0 < got[close].sum() < close.sum()
+
+
 def test_priority_orders_like_jax():
     budget = F32([0.5, 0.7, 0.5, 0.2])
     for priority in ("id", "budget"):
@@ -379,6 +407,11 @@ def test_export_header_carries_safety_and_other_flight_modes_are_refused(tmp_pat
     cfg = config.load(REPO / "configs/smoke.yaml", ["safety.priority=budget",
                                                     "safety.intents=false"])
     assert (spec_of(cfg).priority, spec_of(cfg).intents) == ("budget", False)
+    assert not spec.escape
+    assert spec_of(config.load(REPO / "configs/smoke.yaml", ["safety.escape=true"])).escape
+    without = export.header(CFG)
+    del without["config"]["safety"]["escape"]  # optional: absent means off
+    assert not RuntimeSpec.from_header(json.loads(json.dumps(without))).escape
     _, params = init_params()
     export.export(CFG, params, tmp_path)
     head = json.loads((tmp_path / "policy.json").read_text())

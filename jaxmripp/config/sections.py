@@ -75,6 +75,9 @@ class SafetyConfig:
     takeoff_scan: bool = False  # a full turn at the start pose before the first decision
     intents: bool = True  # robots in range announce their flights; lower priority holds
     priority: str = "id"  # id | budget: who goes first among robots in range
+    # Robots closer than d_c to a robot they hear may still fly what takes them no closer
+    # (off: such robots are offered nothing until the other one leaves)
+    escape: bool = False
 
 
 @dataclasses.dataclass(frozen=True)

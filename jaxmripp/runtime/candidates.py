@@ -98,7 +98,8 @@ def sample_many(
                               drawn[inside], size, hi, rows=np.nonzero(inside)[0])
     apart = free.copy()
     apart[free] = flight.clear_of_robots(np.broadcast_to(position, drawn.shape)[free],
-                                         drawn[free], others, spec.collision_distance)
+                                         drawn[free], others, spec.collision_distance,
+                                         spec.escape)
     place_ok = inside & free & apart
 
     headings = np.arange(N_HEADINGS, dtype=np.int32)

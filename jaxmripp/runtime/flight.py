@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxmripp.spec.flight import PRIORITIES
+from jaxmripp.spec.flight import PRIORITIES, takes_no_closer
 
 F32 = np.float32
 
@@ -42,10 +42,11 @@ def _least_gap(r0, w, hi) -> np.ndarray:
     return np.linalg.norm(r0 + w * t, axis=-1)
 
 
-def clear_of_robots(start, ends, others, collision_distance) -> np.ndarray:
+def clear_of_robots(start, ends, others, collision_distance, escape: bool = False
+                    ) -> np.ndarray:
     """Starts (3,) or (M, 3), ends (M, 3), (R, 3) robots heard -> (M,) True where the
     flight start -> end keeps more than d_c from every robot heard, each hovering where it
-    was heard."""
+    was heard; with `escape` also where it takes the robot no closer to it."""
     ends = np.asarray(ends, F32).reshape(-1, 3)
     others = np.asarray(others, F32).reshape(-1, 3)
     if len(others) == 0:
@@ -54,8 +55,10 @@ def clear_of_robots(start, ends, others, collision_distance) -> np.ndarray:
     a0 = np.broadcast_to(np.asarray(start, F32).reshape(-1, 1, 3), (m, n, 3))
     a1 = np.broadcast_to(ends[:, None, :], (m, n, 3))
     b = np.broadcast_to(others[None], (m, n, 3))
-    gap = closest_approach(a0, a1, b, b)
-    return np.all(gap > F32(collision_distance), axis=-1)
+    clear = closest_approach(a0, a1, b, b) > F32(collision_distance)
+    if escape:
+        clear |= takes_no_closer(a0, a1, b)
+    return np.all(clear, axis=-1)
 
 
 def goes_first(other_id: int, other_budget, own_id: int, own_budget, priority: str) -> bool:

@@ -39,7 +39,7 @@ def check(c: cands.Candidates, position: np.ndarray, budget_left, occupancy: Occ
     free, apart = np.ones(len(unique), bool), np.ones(len(unique), bool)
     free[judged] = occupancy.known_free(position, unique[judged], spec.shell[1])
     apart[judged] = flight.clear_of_robots(position, unique[judged], others,
-                                           spec.collision_distance)
+                                           spec.collision_distance, spec.escape)
     why = {
         "outside": outside,
         "blocked": ~free[inverse],

@@ -12,7 +12,8 @@ policy.json
                       `features(ahead)` (FEATURES, with the lookahead input when
                       config.ahead.branches > 0) / ROBOT_STATE
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
-                      world.size, sensor.*, candidates.*, robots.*, radio.*, safety.*,
+                      world.size, sensor.*, candidates.*, robots.*, radio.*, safety.* (escape
+                      may be absent: off),
                       gp.*, reward.utility_norm, episode.max_steps, ahead.* (the
                       lookahead input of `jaxmripp.spec.layout`: branches, discount,
                       facade_weight; absent: none); infinities are the
@@ -94,11 +95,12 @@ class RuntimeSpec:
     max_steps: int
     # Safe flight (jaxmripp.spec.flight): the obstacle rule (always "known_free" here),
     # whether the first sense is a take-off scan, whether robots exchange intents and hold,
-    # and who goes first ("id" or "budget").
+    # who goes first ("id" or "budget") and whether robots too close may part (escape).
     flight: str = "known_free"
     takeoff_scan: bool = True
     intents: bool = True
     priority: str = "id"
+    escape: bool = False
     # The lookahead input (jaxmripp.spec.layout): candidates followed (0: no such input),
     # the later flight's weight and the facade weight of its view value.
     ahead_branches: int = 0
@@ -170,6 +172,9 @@ class RuntimeSpec:
             takeoff_scan=get("safety", "takeoff_scan", bool),
             intents=get("safety", "intents", bool),
             priority=priority,
+            # Optional in the header (absent: off).
+            escape=(get("safety", "escape", bool) if "escape" in section("safety")
+                    else False),
             **ahead,
         )
 

@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import flight, geometry
-from jaxmripp.config import CandidateConfig
+from jaxmripp.config import CandidateConfig, SafetyConfig
 
 
 @struct.dataclass
@@ -44,7 +44,7 @@ def sample(
     others: jax.Array,
     others_known: jax.Array,
     cand: CandidateConfig,
-    flight_mode: str,
+    safety: SafetyConfig,
     turn_cost: float | jax.Array,
     collision_distance: float | jax.Array,
     size: int,
@@ -60,9 +60,10 @@ def sample(
       others: (N, 3) positions of all robots (the caller's own row is ignored if masked).
       others_known: (N,) bool robots this one can hear (within radio range); False for self.
       cand: static configuration (shapes: K positions, oversampling, shell).
-      flight_mode: safety.flight (jaxmripp.spec.flight): known_free offers only flights
-        through voxels mapped FREE; truncate and optimistic only avoid voxels mapped
-        OCCUPIED.
+      safety: static rules of jaxmripp.spec.flight: `flight` (known_free offers only
+        flights through voxels mapped FREE; truncate and optimistic only avoid voxels
+        mapped OCCUPIED) and `escape` (flights that take the robot no closer to a robot
+        heard are clear of it).
       turn_cost: () charged on a heading change.
       collision_distance: () d_c; flights that come within it of a robot heard (hovering
         where it is) are rejected.
@@ -99,11 +100,12 @@ def sample(
     # Charged distance as flown between the float32 endpoints (exactly 0 for draw 0).
     distance = jnp.linalg.norm(drawn - position, axis=-1)
 
-    line_ok = geometry.line_rule(flight_mode)
+    line_ok = geometry.line_rule(safety.flight)
     place_ok = (
         geometry.inside_world(drawn)
         & line_ok(position, drawn, occupancy, size, hi)
-        & flight.clear_of_robots(position, drawn, others, others_known, collision_distance)
+        & flight.clear_of_robots(position, drawn, others, others_known, collision_distance,
+                                 safety.escape)
     )
 
     # Per pose: pay the distance, plus the turn cost when the heading changes. The

@@ -213,7 +213,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     new_candidates = jax.vmap(
         cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
         keys, state.position, state.heading, state.budget_left, state.occupancy,
-        state.position, others_known, params.candidates, params.safety.flight, dyn.turn_cost,
+        state.position, others_known, params.candidates, params.safety, dyn.turn_cost,
         dyn.collision_distance, size)
     done = state.done | ~jnp.any(new_candidates.valid, axis=1) | (state.step >= params.max_steps)
     state = state.replace(candidates=new_candidates, done=done)

@@ -11,6 +11,8 @@ import math
 import jax
 import jax.numpy as jnp
 
+from jaxmripp.spec.flight import takes_no_closer
+
 
 def closest_approach(a0: jax.Array, a1: jax.Array, b0: jax.Array, b1: jax.Array) -> jax.Array:
     """(..., 3) x 4 -> (...,) the least distance between robots flying a0 -> a1 and
@@ -39,15 +41,18 @@ def _least_gap(r0, w, lo, hi):
 
 
 def clear_of_robots(start: jax.Array, ends: jax.Array, others: jax.Array, heard: jax.Array,
-                    collision_distance) -> jax.Array:
+                    collision_distance, escape: bool = False) -> jax.Array:
     """(3,), (M, 3), (N, 3), (N,) -> (M,) True where the flight start -> end keeps more than
-    d_c from every robot heard, hovering where it was heard."""
+    d_c from every robot heard, hovering where it was heard; with `escape` (static) also
+    where it takes the robot no closer to it (`jaxmripp.spec.flight`)."""
     m, n = ends.shape[0], others.shape[0]
     a0 = jnp.broadcast_to(start, (m, n, 3))
     a1 = jnp.broadcast_to(ends[:, None, :], (m, n, 3))
     b = jnp.broadcast_to(others[None], (m, n, 3))
-    gap = closest_approach(a0, a1, b, b)
-    return jnp.all(~heard[None, :] | (gap > collision_distance), axis=-1)
+    clear = closest_approach(a0, a1, b, b) > collision_distance
+    if escape:
+        clear = clear | takes_no_closer(a0, a1, b)
+    return jnp.all(~heard[None, :] | clear, axis=-1)
 
 
 def pairwise_approach(start: jax.Array, end: jax.Array) -> jax.Array:

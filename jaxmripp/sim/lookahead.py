@@ -66,7 +66,7 @@ def next_flight(search: Search, occupancy, top, position, heading, budget_left, 
     after = occupancy.reshape(-1).at[seen].set(geometry.FREE, mode="drop").reshape(
         occupancy.shape)
     following = cands.sample(key, position, heading, budget_left, after, search.others,
-                             search.heard, params.candidates, params.safety.flight,
+                             search.heard, params.candidates, params.safety,
                              search.dyn.turn_cost, search.dyn.collision_distance, size)
     unknown, facade = view.view_gain(after, top, following.position[::geometry.N_HEADINGS],
                                      params.sensor, size)

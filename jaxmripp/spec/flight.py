@@ -29,7 +29,11 @@ Closest approach of two flights
 
 Robots in radio range
     A candidate is offered only if its flight's closest approach to every robot heard this
-    round, hovering where it was heard, exceeds d_c. Robots then choose at once and announce
+    round, hovering where it was heard, exceeds d_c. With `safety.escape`, a flight that
+    takes the robot no closer to a robot heard (`takes_no_closer`: turning in place, or
+    flying away from it) is clear of that robot whatever their distance: two robots that
+    came within d_c while out of radio range then part, instead of both being left with
+    nothing on offer (and retired) for the rest of the episode. Robots then choose at once and announce
     the chosen segment (the intent) to the robots in range (`safety.intents`). Priority
     (`safety.priority`): `id` -- the lower id first; `budget` -- more budget left first, then
     the lower id. A robot whose chosen flight comes within d_c (closest approach <= d_c) of
@@ -48,5 +52,14 @@ Collisions (the environment's ground truth)
 """
 
 FLIGHT_MODES = ("known_free", "truncate", "optimistic")
+
+
+def takes_no_closer(start, end, other):
+    """Flights start -> end (..., 3) and robots hovering at `other` (..., 3) -> (...,) bool:
+    the flight never brings the robot closer to the other one than it is at the start,
+    (start - other) . (end - start) >= 0, summed in x, y, z order. Plain arithmetic, so
+    NumPy and JAX arrays share it."""
+    away = (start - other) * (end - start)
+    return away[..., 0] + away[..., 1] + away[..., 2] >= 0
 PRIORITIES = ("id", "budget")
 SCAN_TURNS = 4  # a full circle through the four headings, back to the start heading
