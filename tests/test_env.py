@@ -537,6 +537,10 @@ def test_robot_collisions_count_pairs_by_closest_approach(fns, rollout):
     assert counts(meet, deaf)[0] == (0, 1, [0, 0, 0])
     assert counts(meet, deaf.with_values(collision_distance=0.065))[0] == (0, 2, [0, 0, 0])
     assert counts(meet, deaf.with_values(collision_distance=0.02))[0] == (0, 0, [0, 0, 0])
+    # 0 and 1 start 0.03 apart (they met before) and part; 2 flies past both, 0.04 off.
+    part = place(state, [[0.5, 0.5, 0.5], [0.53, 0.5, 0.5], [0.3, 0.54, 0.5]],
+                 [[0.4, 0.5, 0.5], [0.63, 0.5, 0.5], [0.7, 0.54, 0.5]])
+    assert counts(part, deaf)[0] == (0, 2, [0, 0, 0])  # no new pair for 0 and 1
     # 0 and 1 swap places: their end points are 0.2 apart, they meet halfway: one pair.
     swap = place(state, [[0.4, 0.5, 0.5], [0.6, 0.5, 0.5], [0.5, 0.2, 0.5]],
                  [[0.6, 0.5, 0.5], [0.4, 0.5, 0.5], [0.5, 0.3, 0.5]])

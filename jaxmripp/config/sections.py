@@ -76,7 +76,7 @@ class SafetyConfig:
     intents: bool = True  # robots in range announce their flights; lower priority holds
     priority: str = "id"  # id | budget: who goes first among robots in range
     # Robots closer than d_c to a robot they hear may still fly what takes them no closer
-    # (off: such robots are offered nothing until the other one leaves)
+    # (off: two robots that met out of radio range are offered nothing and retire)
     escape: bool = False
 
 

@@ -86,12 +86,15 @@ def holds(start: jax.Array, target: jax.Array, flying: jax.Array, heard: jax.Arr
 
 def robot_collisions(start: jax.Array, stop: jax.Array, flew: jax.Array, heard: jax.Array,
                      collision_distance) -> tuple[jax.Array, jax.Array]:
-    """Pairs, at least one flying, whose actual flights come closer than d_c: () int32
-    counts (in radio range at the decision, out of range), each pair once."""
+    """Pairs, at least one flying, whose actual flights come closer than d_c from at least
+    d_c apart: () int32 counts (in radio range at the decision, out of range), each pair
+    once. A pair already closer than d_c was counted when it came so close (with
+    `safety.escape` it may part: that is no new collision)."""
     n = start.shape[0]
     close = pairwise_approach(start, stop) < collision_distance
+    apart = pairwise_approach(start, start) >= collision_distance
     upper = jnp.triu(jnp.ones((n, n), bool), k=1)
-    counted = close & upper & (flew[:, None] | flew[None, :])
+    counted = close & apart & upper & (flew[:, None] | flew[None, :])
     in_range = jnp.sum(counted & heard).astype(jnp.int32)
     return in_range, jnp.sum(counted & ~heard).astype(jnp.int32)
 

@@ -45,8 +45,10 @@ Robots in radio range
 Collisions (the environment's ground truth)
     obstacle: a flight that enters a voxel occupied in the truth; it stops before it.
     robot: a pair of robots, at least one of them flying, whose actual flights come closer
-    than d_c (closest approach < d_c) -- counted once per pair and step, as `in range` when
-    the two were in radio range when they decided and `out of range` otherwise.
+    than d_c (closest approach < d_c) from at least d_c apart -- counted once per pair and
+    step, as `in range` when the two were in radio range when they decided and `out of
+    range` otherwise. A pair already closer than d_c was counted when it came so close;
+    parting (`safety.escape`) is no new collision.
     Robots start on take-off pads `robots.pad_spacing` apart (more than d_c) in the world's
     y = start_y face: robot i at start + spacing (i mod m, 0, i div m), m = ceil(sqrt(N)).
 """
