@@ -120,14 +120,13 @@ def known_free(codes: np.ndarray | PaddedMaps, start: np.ndarray, ends: np.ndarr
     True where every voxel the flight start -> end traverses is FREE in its map."""
     ends = np.asarray(ends, F32)
     start = np.broadcast_to(np.asarray(start, F32), ends.shape)
-    if isinstance(codes, PaddedMaps):
-        table, index = codes.codes, codes.index
-    else:
-        table, index = codes, lambda voxel: linear_index(voxel, size)
+    # Plain codes are maps with no margin.
+    maps = codes if isinstance(codes, PaddedMaps) else PaddedMaps(np.asarray(codes), size, 0)
+    table = maps.codes
     rows = None if table.ndim == 1 else np.broadcast_to(np.asarray(rows), ends.shape[:-1])
 
     def code(voxel, rows):
-        return table[index(voxel)] if rows is None else table[rows, index(voxel)]
+        return table[maps.index(voxel)] if rows is None else table[rows, maps.index(voxel)]
 
     # The end voxel, which every traversal lists, first: flights ending in a voxel not
     # known FREE need no traversal.

@@ -92,7 +92,7 @@ def robot_collisions(start: jax.Array, stop: jax.Array, flew: jax.Array, heard: 
     `safety.escape` it may part: that is no new collision)."""
     n = start.shape[0]
     close = pairwise_approach(start, stop) < collision_distance
-    apart = pairwise_approach(start, start) >= collision_distance
+    apart = jnp.linalg.norm(start[:, None] - start[None], axis=-1) >= collision_distance
     upper = jnp.triu(jnp.ones((n, n), bool), k=1)
     counted = close & apart & upper & (flew[:, None] | flew[None, :])
     in_range = jnp.sum(counted & heard).astype(jnp.int32)
