@@ -273,3 +273,20 @@ def test_a_sweep_builds_the_lookahead_input_its_policies_read(tmp_path):
         pipeline.with_policy_inputs(CFG, [folders["plain"], folders["ahead"]])
     with pytest.raises(cfgmod.ConfigError, match="reads the lookahead input"):
         pipeline.sweep_planner(folders["ahead"], CFG, "mine")
+
+
+@pytest.mark.parametrize("name", sorted(p.name for p in (REPO / "pretrained").iterdir()))
+def test_each_shipped_policy_loads_and_flies_by_its_config(name):
+    """A folder under pretrained/ is what jaxmripp.ship writes: the export loads (hash,
+    layout, widths), the runtime's settings from its header are those its config.yaml
+    gives, and metadata.json says how it was trained."""
+    folder = REPO / "pretrained" / name
+    shipped = weights.load(folder)
+    cfg = cfgmod.load(folder / "config.yaml")
+    export.check_layout(shipped.header, shipped.weights)
+    from_config = weights.RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg))))
+    assert shipped.spec == from_config
+    meta = json.loads((folder / "metadata.json").read_text())
+    assert meta["command"].startswith("python train.py --config ")
+    assert meta["train_minutes"] > 0 and meta["updates"] > 0
+    assert len(meta["commit"]) == 40
