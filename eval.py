@@ -69,8 +69,8 @@ def main(argv=None) -> int:
     for name, run_dir in policies:
         planners[name] = pipeline.sweep_planner(run_dir, cfg, name, best=args.best, log=say)
         say(f"policy {name}: {run_dir}")
-    out = Path(args.out) if args.out else (
-        policies[0][1] / "eval" if policies else Path("runs") / Path(args.config).stem / "eval")
+    out = Path(args.out) if args.out else pipeline.eval_dir(
+        args.config, [run_dir for _, run_dir in policies])
     render = not args.no_render and sweep.eval_setting(cfg, "render")
     result = sweep.run_sweep(cfg, planners, time_planning=False if args.no_timing else None,
                              keep_pictures=render, log=say)

@@ -35,6 +35,19 @@ def trained_params(source: str | Path, cfg: Config | None = None, best: bool = F
         "jaxmripp.export / jaxmripp.ship")
 
 
+def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
+    """Where eval.py writes without --out: the first policy's training run keeps its
+    evaluations (RUN/eval); a shipped export (e.g. pretrained/default) stays as shipped,
+    so its evaluations go to runs/NAME/eval; a sweep of baselines alone to
+    runs/CONFIG_STEM/eval."""
+    if not policy_dirs:
+        return Path("runs") / Path(config_path).stem / "eval"
+    first = Path(policy_dirs[0])
+    if (first / "checkpoints").is_dir():
+        return first / "eval"
+    return Path("runs") / first.name / "eval"
+
+
 def initial_params(cfg: Config):
     """The parameters `train.init_from` names (None when it is empty), for
     `jaxmripp.learn.train.train`."""

@@ -109,6 +109,17 @@ def test_presets_load(name):
         assert cfg.eval.worlds * cfg.eval.trials == 250
 
 
+def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
+    from jaxmripp.pipeline import eval_dir
+
+    run = tmp_path / "runs" / "mine"
+    (run / "checkpoints").mkdir(parents=True)
+    assert eval_dir("configs/eval_paper.yaml", [run, ROOT / "pretrained/paper"]) == run / "eval"
+    assert eval_dir("configs/eval_paper.yaml", [ROOT / "pretrained/scale"]) == \
+        Path("runs/scale/eval")
+    assert eval_dir("configs/eval_paper.yaml", []) == Path("runs/eval_paper/eval")
+
+
 # ---------------------------------------------------------------------------------------
 # A tiny sweep: 2 shapes x 1 planner, 6 episodes each in chunks of 4 (one padded chunk)
 
