@@ -19,12 +19,17 @@ from jaxmripp.config import Config
 from jaxmripp.parallel.mesh import is_main_process
 
 
+def is_training_run(folder: str | Path) -> bool:
+    """A folder train.py wrote (with checkpoints/), as opposed to an export."""
+    return (Path(folder) / "checkpoints").is_dir()
+
+
 def trained_params(source: str | Path, cfg: Config | None = None, best: bool = False):
     """Network parameters of a training run (its last or best checkpoint, restored with
     `cfg`, by default the run's config.yaml) or of an export (a folder with policy.npz,
     e.g. pretrained/default)."""
     source = Path(source)
-    if (source / "checkpoints").is_dir():
+    if is_training_run(source):
         run_cfg = cfg if cfg is not None else cfgmod.load(source / "config.yaml")
         return trainmod.restore(run_cfg, source, best=best).params
     if (source / weights_format.WEIGHTS_FILE).is_file():
@@ -43,7 +48,7 @@ def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
     if not policy_dirs:
         return Path("runs") / Path(config_path).stem / "eval"
     first = Path(policy_dirs[0])
-    if (first / "checkpoints").is_dir():
+    if is_training_run(first):
         return first / "eval"
     return Path("runs") / first.name / "eval"
 
