@@ -80,7 +80,7 @@ def main(argv: list[str] | None = None) -> float:
         spacing = exported.header["config"]["robots"].get("pad_spacing",
                                                           cfg.robots.pad_spacing)
     else:
-        spec, policy = fmt.RuntimeSpec.from_header(fmt.jsonable(exportmod.header(cfg))), None
+        spec, policy = exportmod.runtime_spec(cfg), None
         spacing = cfg.robots.pad_spacing
     size = args.size or spec.size
     if size != spec.size:

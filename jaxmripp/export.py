@@ -31,6 +31,12 @@ def header(cfg: Config, source: dict | None = None) -> dict[str, Any]:
     return fmt.header(cfg, policymod.runtime_config(cfg.policy, central_critic), source)
 
 
+def runtime_spec(cfg: Config) -> fmt.RuntimeSpec:
+    """What the onboard runtime reads from `cfg`'s export: the header as policy.json stores
+    it (plain JSON data), without writing a file."""
+    return fmt.RuntimeSpec.from_header(fmt.jsonable(header(cfg)))
+
+
 def check_layout(head: dict[str, Any], weights: dict[str, Any]) -> None:
     """Refuses an export the runtime would feed wrongly: the header's layout must be the
     spec's (`jaxmripp.spec.layout`, which the runtime builds), and the weights' input

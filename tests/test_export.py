@@ -287,7 +287,7 @@ def test_each_shipped_policy_loads_and_flies_by_its_config(name):
     shipped = weights.load(folder)
     cfg = cfgmod.load(folder / "config.yaml")
     export.check_layout(shipped.header, shipped.weights)
-    from_config = weights.RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg))))
+    from_config = export.runtime_spec(cfg)
     assert shipped.spec == from_config
     meta = json.loads((folder / "metadata.json").read_text())
     assert meta["command"].startswith("python train.py --config ")

@@ -207,10 +207,9 @@ def test_ahead_input_matches_the_numpy_runtime(ahead_episodes):
     from jaxmripp.runtime import candidates as runtime_cands
     from jaxmripp.runtime import lookahead as runtime_lookahead
     from jaxmripp.runtime.mapping import OccupancyMap
-    from jaxmripp.runtime.weights import RuntimeSpec, jsonable
 
     (obs, state), step_keys = ahead_episodes
-    spec = RuntimeSpec.from_header(jsonable(export.header(AHEAD_CFG)))
+    spec = export.runtime_spec(AHEAD_CFG)
     n_features = len(layout.FEATURES)
     assert obs.features.shape[-1] == n_features + 1 == len(spec.features)
     assert np.all(np.isfinite(obs.features))

@@ -37,7 +37,7 @@ CFG = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3
 
 
 def spec_of(cfg=CFG) -> RuntimeSpec:
-    return RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg))))
+    return export.runtime_spec(cfg)
 
 
 def init_params(cfg=CFG, seed=0, noise=0.1):

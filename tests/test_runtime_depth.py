@@ -8,9 +8,8 @@ import numpy as np
 import pytest
 
 from jaxmripp import config, export
-from jaxmripp.runtime import InvalidPoseError, OnboardPlanner, RuntimeSpec
+from jaxmripp.runtime import InvalidPoseError, OnboardPlanner
 from jaxmripp.runtime.depth import DepthCamera, GridFrame, observe, observe_many
-from jaxmripp.runtime.weights import jsonable
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 G = 20
@@ -150,7 +149,7 @@ def test_planner_sense_depth_keeps_what_it_knows_occupied():
     """sense_depth == sense(observe(...)), except that a voxel the map holds OCCUPIED is
     never turned FREE by a later image."""
     cfg = config.from_dict({"world": {"size": G}, "robots": {"count": 1}})
-    spec = RuntimeSpec.from_header(jsonable(export.header(cfg)))
+    spec = export.runtime_spec(cfg)
     camera = DepthCamera.square(9, 60.0, max_range=6.0)  # a ray on the axis
     position_m = np.array([2.5, 10.5, 10.5])
     unit = FRAME.to_unit(position_m)

@@ -23,7 +23,6 @@ did not happen in any seed we ran (the test prints the smallest JAX margin it me
 
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
 import jax
@@ -36,7 +35,7 @@ from jaxmripp.sim.observation import in_sectors
 from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
-from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
+from jaxmripp.runtime import Candidates, OnboardPlanner
 from jaxmripp.spec.grid import FREE, N_HEADINGS, UNKNOWN
 from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
@@ -60,7 +59,7 @@ def make_sim(cfg):
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     return SimpleNamespace(
         params=params, dyn=dyn, radio_range=cfg.radio.range,
-        spec=RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg)))),
+        spec=export.runtime_spec(cfg),
         reset=jax.jit(lambda key: envmod.reset(key, params, dyn)),
         step=jax.jit(lambda key, state, actions: envmod.step(key, state, actions, params, dyn)),
         cast=jax.jit(jax.vmap(lambda w, p, h: sensing.cast(w, p, h, params.sensor, params.size),

@@ -32,7 +32,7 @@ F32 = np.float32
 
 
 def spec_of(cfg=CFG, **changes) -> RuntimeSpec:
-    spec = RuntimeSpec.from_header(json.loads(json.dumps(export.header(cfg))))
+    spec = export.runtime_spec(cfg)
     return dataclasses.replace(spec, **changes)
 
 

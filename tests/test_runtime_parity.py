@@ -38,7 +38,6 @@ Kolmogorov-Smirnov and paired means), each drawn from the same states on both si
 
 from __future__ import annotations
 
-import json
 from types import SimpleNamespace
 
 import jax
@@ -48,7 +47,7 @@ import pytest
 from scipy import stats
 
 from jaxmripp import config, export
-from jaxmripp.runtime import Candidates, OnboardPlanner, RuntimeSpec
+from jaxmripp.runtime import Candidates, OnboardPlanner
 from jaxmripp.sim import candidates as jax_candidates
 from jaxmripp.sim import comms, env as envmod, gp as jax_gp, sensing
 from jaxmripp.sim.params import DynamicParams
@@ -105,8 +104,7 @@ class JaxSide:
 
 @pytest.fixture(scope="module")
 def sim():
-    return SimpleNamespace(jax=JaxSide(CFG), spec=RuntimeSpec.from_header(
-        json.loads(json.dumps(export.header(CFG)))))
+    return SimpleNamespace(jax=JaxSide(CFG), spec=export.runtime_spec(CFG))
 
 
 def robot(tree, i):
