@@ -64,6 +64,9 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--sectors", action="store_true",
                         help="each robot keeps to its sector of the world while it has unknown "
                              "views there (jaxmripp.spec.sectors)")
+    parser.add_argument("--escape", action="store_true",
+                        help="robots that met out of radio range may fly apart "
+                             "(safety.escape; default: the export's setting)")
     parser.add_argument("--quiet", action="store_true", help="only the final line")
     args = parser.parse_args(argv)
 
@@ -83,8 +86,7 @@ def main(argv: list[str] | None = None) -> float:
         spec, policy = exportmod.runtime_spec(cfg), None
         spacing = cfg.robots.pad_spacing
     size = args.size or spec.size
-    if size != spec.size:
-        spec = dataclasses.replace(spec, size=size)
+    spec = dataclasses.replace(spec, size=size, escape=spec.escape or args.escape)
     n = args.robots or spec.team_size
     world_cfg = dataclasses.replace(cfg.world, size=size, layout=args.layout,
                                     targets=(cfg.world.targets[1],) * 2)
@@ -106,7 +108,8 @@ def main(argv: list[str] | None = None) -> float:
     heading = np.full(n, spec.start_heading, np.int32)
     blocked = np.zeros(n, bool)
     found = np.zeros(valid.shape, bool)
-    mode = planners[0].mode + (" (sectors)" if args.sectors else "")
+    rules = [name for name, on in (("sectors", args.sectors), ("escape", spec.escape)) if on]
+    mode = planners[0].mode + (f" ({', '.join(rules)})" if rules else "")
     if not args.quiet:
         print(f"{n} robots, {mode} planners, G = {size}, {int(valid.sum())} windows, "
               f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")

@@ -107,6 +107,9 @@ def test_presets_load(name):
     else:
         assert {s.radio_range for s in shapes} == {math.inf, 0.1}
         assert cfg.eval.worlds * cfg.eval.trials == 250
+        # Table I is reported with both short-range rules; the ablations with the paper's.
+        rules = name != "eval_ablation"
+        assert (cfg.eval.sectors, cfg.safety.escape) == (rules, rules)
 
 
 def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
