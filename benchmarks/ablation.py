@@ -1,5 +1,6 @@
 """Ablations (the paper's Tables II and III): the full policy against policies trained with
-one part removed, same seed set and number of updates, evaluated on the paper's protocol.
+one part removed, same seed set and number of updates, evaluated on the paper's protocol
+under its rules at short range (no sectors, no parting after meeting out of range).
 
 Variants (the dotted overrides that remove the part):
 
@@ -60,15 +61,17 @@ VARIANTS = {
 # Sections that only shape training; an override elsewhere changes the environment, so the
 # variant is evaluated with it too.
 TRAINING_SECTIONS = ("policy", "reward", "ppo", "train")
-# preset: (training config, evaluation config, default number of updates, training
-# overrides, evaluation overrides). The variants compare what PPO learns from each input, so
-# no kickstarting teacher pulls them toward the next-best-view rule, and they are evaluated
-# under the paper's rules at short range (configs/eval_ablation.yaml says so for `default`).
+# preset: (training config, evaluation config, default number of updates, overrides). The
+# variants compare what PPO learns from each input, so no kickstarting teacher pulls them
+# toward the next-best-view rule.
 PRESETS = {
-    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, (), ()),
+    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, ()),
     "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60,
-              ("ppo.teacher_coef=0",), ("eval.sectors=false", "safety.escape=false")),
+              ("ppo.teacher_coef=0",)),
 }
+# Every variant is evaluated under the paper's rules at short range (no sectors, no parting
+# after meeting out of range), which the Table I configurations turn on.
+PAPER_RULES = ("eval.sectors=false", "safety.escape=false")
 
 
 def environment_overrides(variant: str) -> tuple[str, ...]:
@@ -113,8 +116,7 @@ def parse_args(argv):
 
 def main(argv=None) -> int:
     args = parse_args(argv)
-    train_path, eval_path, preset_updates, preset_overrides, eval_overrides = \
-        PRESETS[args.preset]
+    train_path, eval_path, preset_updates, preset_overrides = PRESETS[args.preset]
     updates = args.updates or preset_updates
     common = [*preset_overrides, *([f"train.updates={updates}"] if updates else [])]
     try:
@@ -139,7 +141,7 @@ def main(argv=None) -> int:
     protocol = ["eval.planners=[policy]", f"eval.worlds={args.worlds}",
                 f"eval.trials={args.trials}", "eval.pairs=[]"]
     for env in sorted({environment_overrides(v) for v in args.variants}):
-        cfg = cfgmod.load(eval_path, [*protocol, *eval_overrides, *env])
+        cfg = cfgmod.load(eval_path, [*protocol, *PAPER_RULES, *env])
         policies = {f"{variant}-s{seed}": pipeline.trained_planner(
             run_cfg, args.runs / args.preset / f"{variant}-s{seed}")._replace(
                 name=f"{variant}-s{seed}")
