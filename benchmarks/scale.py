@@ -24,12 +24,18 @@ With --grid (instead of the timing), the paper's scalability grid: every world s
 0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval,
 W worlds per cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std,
 95% half-width) and, with --figure, % found against N per world size with std bands.
+Every cell's worlds follow from eval.seed and the world's index alone, so the grid can be
+split over runs (--world-sizes, --grid-teams, --exchanges, --global-planners), in
+parallel on one GPU too; --collected FILE prints the grid's tables (mean % found, std over
+the worlds) from the lines collected in FILE and draws --figure from them.
 
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
         [--eval --worlds W --policy pretrained/default] [--set key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
-        [--worlds W] [--figure docs/scale_grid.png]
+        [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
+        [--global-planners policy,coordinated,nbv_team]
+    python benchmarks/scale.py --collected grid.jsonl [--figure docs/scale_grid.png]
 """
 
 from __future__ import annotations
@@ -66,11 +72,37 @@ def main(argv=None) -> int:
     parser.add_argument("--world-sizes", default="75,100,125")
     parser.add_argument("--grid-teams", default="16,32,48,64")
     parser.add_argument("--figure", type=Path, default=None, help="--grid: the plot")
+    parser.add_argument("--exchanges", default=",".join(EXCHANGES),
+                        help="--grid: the exchanges to evaluate (a cell's pairs split over runs)")
+    parser.add_argument("--global-planners", default=",".join(GLOBAL_PLANNERS),
+                        help="--grid: the planners evaluated with global communication")
+    parser.add_argument("--collected", type=Path, default=None,
+                        help="print the tables (and draw --figure) from the scale.grid.* "
+                             "JSON lines of this file, collected from --grid runs")
     args = parser.parse_args(argv)
     if (args.eval or args.grid) and not (args.policy / "config.yaml").is_file():
         print(f"error: --policy {args.policy}: no config.yaml there", file=sys.stderr)
         return 2
+    if args.collected is not None:
+        grid = read_grid(args.collected) if args.collected.is_file() else {}
+        if not grid:
+            print(f"error: --collected {args.collected}: no file with "
+                  "scale.grid.<planner>.<exchange>.g<G>.n<N> lines", file=sys.stderr)
+            return 2
+        sizes = sorted({size for _, _, size, _ in grid})
+        print(grid_tables(grid, sizes))
+        if args.figure is not None:
+            plot_grid(grid, sizes, args.figure)
+        return 0
     if args.grid:
+        exchanges = args.exchanges.split(",")
+        planners = args.global_planners.split(",") if "global" in exchanges else []
+        for flag, given, allowed in (("--exchanges", exchanges, EXCHANGES),
+                                     ("--global-planners", planners, GLOBAL_PLANNERS)):
+            if not set(given) <= set(allowed):
+                print(f"error: {flag} {sorted(set(given) - set(allowed))}: allowed "
+                      f"{', '.join(allowed)}", file=sys.stderr)
+                return 2
         sizes = [int(g) for g in args.world_sizes.split(",")]
         unknown = sorted(set(sizes) - set(PAPER_RADIO))
         if unknown:
@@ -78,7 +110,7 @@ def main(argv=None) -> int:
                   "worlds, each with its radio range)", file=sys.stderr)
             return 2
         evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
-                      args.worlds, args.set, args.figure)
+                      args.worlds, args.set, args.figure, exchanges, planners)
         return 0
     teams = sorted(int(n) for n in args.teams.split(","))
     micros = {}
@@ -108,13 +140,17 @@ def main(argv=None) -> int:
 
 
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
+EXCHANGES = ("global", "single_hop", "relay")
+GLOBAL_PLANNERS = ("policy", "coordinated", "nbv_team")
 
 
 def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
-                    worlds: int, overrides: list[str]) -> dict:
+                    worlds: int, overrides: list[str], exchanges=EXCHANGES,
+                    global_planners=GLOBAL_PLANNERS) -> dict:
     """The policy with single-hop exchange and with relay at radio_range, and the policy,
-    coordinated and nbv_team with global communication, on the same held-out worlds for
-    every team size -> {(planner, exchange, n): % found per world}."""
+    coordinated and nbv_team with global communication (or the `exchanges` and
+    `global_planners` named), on the same held-out worlds for every team size
+    -> {(planner, exchange, n): % found per world}."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
@@ -122,20 +158,21 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
             "eval.budgets=[3.3333333]", "eval.budget_mode=per_robot", f"eval.worlds={worlds}",
             "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
             "eval.pairs=[]", "eval.zip_with_size=[]", *overrides]
-    exchanges = {
-        "global": [*cell, "eval.radio_ranges=[.inf]", "radio.relay=false",
-                   "eval.planners=[policy, coordinated, nbv_team]"],
-        "single_hop": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
-                       "radio.relay=false"],
-        "relay": [*cell, f"eval.radio_ranges=[{radio_range}]", "eval.planners=[policy]",
-                  "radio.relay=true"],
-    }
+    # exchange -> (radio range, relay, planners)
+    settings_of = {"global": (".inf", "false", global_planners),
+                   "single_hop": (radio_range, "false", ("policy",)),
+                   "relay": (radio_range, "true", ("policy",))}
     found = {}
-    for exchange, settings in exchanges.items():
-        cfg = config.load(policy / "config.yaml", settings)
-        planner = pipeline.trained_planner(cfg, policy)  # relay as this exchange has it
-        result = sweep.run_sweep(cfg, {"policy": planner}, time_planning=False,
-                                 keep_pictures=False, log=lambda line: print(line, file=sys.stderr))
+    for exchange in exchanges:
+        rho, relay, planners = settings_of[exchange]
+        cfg = config.load(policy / "config.yaml", [
+            *cell, f"eval.radio_ranges=[{rho}]", f"radio.relay={relay}",
+            f"eval.planners=[{', '.join(planners)}]"])
+        # a given policy is always evaluated (sweep.planner_names): give it only if listed
+        policies = ({"policy": pipeline.trained_planner(cfg, policy)}  # with this relay
+                    if "policy" in planners else {})
+        result = sweep.run_sweep(cfg, policies, time_planning=False, keep_pictures=False,
+                                 log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:
             found[run.planner, exchange, run.shape.n_robots] = run.discovered
     return found
@@ -159,12 +196,14 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
 
 
 def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
-                  overrides: list[str], figure: Path | None) -> None:
+                  overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
+                  global_planners=GLOBAL_PLANNERS) -> None:
     from jaxmripp.evaluation import stats  # noqa: PLC0415
 
     grid = {}
     for size in sizes:
-        found = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides)
+        found = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides,
+                                exchanges, global_planners)
         for (planner, exchange, n), discovered in sorted(found.items()):
             mean, std, half = stats.mean_ci(discovered)
             grid[planner, exchange, size, n] = (mean, std)
@@ -173,6 +212,43 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                  worlds=worlds)
     if figure is not None:
         plot_grid(grid, sizes, figure)
+
+
+def read_grid(path: Path) -> dict:
+    """{(planner, exchange, G, N): (mean, std)} from the scale.grid.* lines of a JSON-lines
+    file (other lines are skipped; a cell given twice keeps its last line)."""
+    import json  # noqa: PLC0415
+
+    grid = {}
+    for line in path.read_text().splitlines():
+        record = json.loads(line) if line.startswith("{") else {}
+        parts = record.get("name", "").split(".")
+        if len(parts) == 6 and parts[:2] == ["scale", "grid"]:
+            planner, exchange, size, n = parts[2], parts[3], int(parts[4][1:]), int(parts[5][1:])
+            grid[planner, exchange, size, n] = (record["value"], record["std"])
+    return grid
+
+
+def grid_tables(grid: dict, sizes: list[int]) -> str:
+    """One markdown table per world size: planner-exchange rows, team-size columns, mean %
+    found (std); a cell not in `grid` reads "-"."""
+    rows = [(p, e) for p, e in
+            [("policy", "single_hop"), ("policy", "relay"), ("policy", "global"),
+             ("coordinated", "global"), ("nbv_team", "global")]
+            if any(k[:2] == (p, e) for k in grid)]
+    text = []
+    for size in sizes:
+        teams = sorted({n for _, _, g, n in grid if g == size})
+        ratio = round((size / config.REFERENCE_SIZE) ** 3)
+        text += [f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]}):", "",
+                 "| planner, exchange | " + " | ".join(f"N = {n}" for n in teams) + " |",
+                 "|---|" + "---|" * len(teams)]
+        for planner, exchange in rows:
+            cells = [grid.get((planner, exchange, size, n)) for n in teams]
+            text.append(f"| {planner}, {exchange.replace('_', ' ')} | " + " | ".join(
+                "-" if c is None else f"{c[0]:.2f} ({c[1]:.2f})" for c in cells) + " |")
+        text.append("")
+    return "\n".join(text)
 
 
 def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:

@@ -1,0 +1,51 @@
+"""benchmarks/scale.py --collected: the grid's tables from JSON lines collected over runs."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
+
+
+def collected(path: Path, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPT), "--collected", str(path), *extra],
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_tables_from_lines_collected_over_runs(tmp_path):
+    def line(name, value, std):
+        return json.dumps({"name": f"scale.grid.{name}", "value": value, "unit": "%",
+                           "std": std, "worlds": 100})
+
+    lines = [line("policy.relay.g125.n16", 60.0, 9.0),
+             "not a JSON line",
+             json.dumps({"name": "scale.relay_vs_best_global_16x", "value": 0.9}),
+             line("nbv_team.global.g125.n64", 97.97, 0.58),
+             line("policy.relay.g125.n16", 68.96, 3.15),  # a later run of the same cell wins
+             line("policy.global.g75.n32", 92.1, 2.04)]
+    path = tmp_path / "grid.jsonl"
+    path.write_text("\n".join(lines) + "\n")
+    figure = tmp_path / "grid.png"
+    done = collected(path, "--figure", str(figure))
+    assert done.returncode == 0, done.stderr
+    out = done.stdout.splitlines()
+    g75 = out.index("3x world (G = 75, rho = 0.2):")
+    g125 = out.index("16x world (G = 125, rho = 0.12):")
+    assert out[g75 + 2] == "| planner, exchange | N = 32 |"
+    # every table has the same rows: those with a figure in some world, in a fixed order
+    assert out[g75 + 4:g75 + 6] == ["| policy, relay | - |", "| policy, global | 92.10 (2.04) |"]
+    assert out[g125 + 2] == "| planner, exchange | N = 16 | N = 64 |"
+    # "-" where a cell has no figure
+    assert out[g125 + 4:g125 + 7] == ["| policy, relay | 68.96 (3.15) | - |",
+                                      "| policy, global | - | - |",
+                                      "| nbv_team, global | - | 97.97 (0.58) |"]
+    assert figure.stat().st_size > 0
+
+
+def test_no_grid_lines_is_an_error(tmp_path):
+    path = tmp_path / "other.jsonl"
+    path.write_text(json.dumps({"name": "scale.peak_rss_mb", "value": 1.0}) + "\n")
+    done = collected(path)
+    assert done.returncode == 2
+    assert "no file with scale.grid.<planner>.<exchange>.g<G>.n<N> lines" in done.stderr
