@@ -83,9 +83,10 @@ def main(argv=None) -> int:
             policy, cfg, log=lambda line: print(line, file=sys.stderr))
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                              time_planning=False, keep_pictures=False)
+    command = "python benchmarks/quality.py " + " ".join(argv or sys.argv[1:])
+    print(json.dumps({"name": "quality.command", "value": command}))  # for jaxmripp.ship
     if args.out:
-        outputs.write_outputs(result, args.out, cfg, render=True, gif=False,
-                              command="python benchmarks/quality.py " + " ".join(argv or sys.argv[1:]))
+        outputs.write_outputs(result, args.out, cfg, render=True, gif=False, command=command)
     found = {(r.planner, r.shape.radio_range): r.discovered for r in result.runs}
     pct = {key: float(value.mean()) for key, value in found.items()}
     for (name, rho), value in pct.items():

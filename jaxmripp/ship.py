@@ -7,7 +7,8 @@ OUT_DIR gets the export the runtime and `eval.py --policy NAME=OUT_DIR` load
 (policy.npz, policy.json), the run's config.yaml, metrics.jsonl and learning curve, and
 metadata.json: the commit (HEAD, or --commit: the one the run trained with), the training
 command, its wall time (the sum of the chunks' times, or --wall-minutes when measured from
-outside), the updates and samples, and the evaluation figures of FILE (the JSON lines `benchmarks/quality.py` prints).
+outside), the updates and samples, and the evaluation figures of FILE (the JSON lines
+`benchmarks/quality.py` prints) with the command that printed them.
 """
 
 from __future__ import annotations
@@ -31,15 +32,16 @@ def _commit() -> str:
     return head + ("-dirty" if dirty else "")
 
 
-def _figures(path: Path | None) -> dict:
+def _figures(path: Path | None) -> tuple[dict, str | None]:
+    """The figures of a `benchmarks/quality.py` output, and the command that printed them."""
     if path is None:
-        return {}
+        return {}, None
     figures = {}
     for line in path.read_text().splitlines():
         if line.strip().startswith("{"):
             record = json.loads(line)
             figures[record["name"]] = record["value"]
-    return figures
+    return figures, figures.pop("quality.command", None)
 
 
 def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None = None,
@@ -61,6 +63,7 @@ def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None 
     preset = Path("configs") / f"{cfg.train.name}.yaml"
     config_arg = preset if preset.is_file() else run_dir / "config.yaml"
     chunks_minutes = sum(r["seconds"] for r in records) / 60
+    figures, evaluation_command = _figures(quality)
     metadata = {
         "commit": commit or _commit(),
         "command": f"python train.py --config {config_arg}",
@@ -70,8 +73,10 @@ def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None 
         "updates": records[-1]["update"],
         "agent_steps": records[-1]["env_steps"],
         "training_discovered": round(records[-1]["discovered"], 4),
-        "evaluation": _figures(quality),
+        "evaluation": figures,
     }
+    if evaluation_command is not None:
+        metadata["evaluation_command"] = evaluation_command
     path = out_dir / "metadata.json"
     path.write_text(json.dumps(metadata, indent=2) + "\n")
     return path

@@ -221,12 +221,14 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
         {"update": 10, "env_steps": 960, "seconds": 90.0, "discovered": 0.25, "return": 1.0,
          "entropy": 2.0}) + "\n")
     quality = tmp_path / "quality.jsonl"
-    quality.write_text('{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n')
+    quality.write_text('{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n'
+                       '{"name": "quality.command", "value": "python benchmarks/quality.py"}\n')
     out = tmp_path / "shipped"
     assert ship.main([str(run), str(out), "--quality", str(quality)]) == 0
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["train_minutes"] == 1.5 and meta["updates"] == 10
     assert meta["evaluation"] == {"quality.policy_pct": 41.5}
+    assert meta["evaluation_command"] == "python benchmarks/quality.py"
     assert meta["command"].startswith("python train.py --config ")
     assert {"policy.npz", "policy.json", "config.yaml", "learning_curve.png"} <= {
         p.name for p in out.iterdir()}
