@@ -18,11 +18,13 @@ import collections
 import dataclasses
 import functools
 import math
+import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+import tqdm
 from flax import struct
 
 from jaxmripp.sim.episode import Planner
@@ -196,7 +198,11 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
     compile_s = time.perf_counter() - start
     outputs = []
     start = time.perf_counter()
-    for c in range(chunks):
+    # Large worlds run in many chunks, minutes each: show how far the planner has got.
+    bar = tqdm.tqdm(range(chunks), desc=f"{planner.name}, N = {params.n_robots}, "
+                    f"G = {params.size}: chunks", disable=chunks < 2, leave=False,
+                    file=sys.stderr)
+    for c in bar:
         outputs.append(data.gather(jax.block_until_ready(compiled(*part(c)))))
     run_s = time.perf_counter() - start
     result, snap = jax.tree.map(lambda *xs: np.concatenate(xs)[:total], *outputs)
