@@ -206,7 +206,7 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                                 exchanges, global_planners)
         for (planner, exchange, n), discovered in sorted(found.items()):
             mean, std, half = stats.mean_ci(discovered)
-            grid[planner, exchange, size, n] = (mean, std)
+            grid[planner, exchange, size, n] = (mean, std, worlds)
             emit(f"scale.grid.{planner}.{exchange}.g{size}.n{n}", mean, "%",
                  std=round(std, 2), ci95_half=round(half, 2) if worlds > 1 else None,
                  worlds=worlds)
@@ -225,17 +225,31 @@ def read_grid(path: Path) -> dict:
         parts = record.get("name", "").split(".")
         if len(parts) == 6 and parts[:2] == ["scale", "grid"]:
             planner, exchange, size, n = parts[2], parts[3], int(parts[4][1:]), int(parts[5][1:])
-            grid[planner, exchange, size, n] = (record["value"], record["std"])
+            grid[planner, exchange, size, n] = (record["value"], record["std"],
+                                                record.get("worlds", 1))
     return grid
 
 
 def grid_tables(grid: dict, sizes: list[int]) -> str:
     """One markdown table per world size: planner-exchange rows, team-size columns, mean %
-    found (std); a cell not in `grid` reads "-"."""
+    found (std; "-" where a cell has no figure), then the policy with relay over the best
+    planner with global communication, with the Welch p of the two (from means and stds)."""
+    from scipy import stats  # noqa: PLC0415
+
     rows = [(p, e) for p, e in
             [("policy", "single_hop"), ("policy", "relay"), ("policy", "global"),
              ("coordinated", "global"), ("nbv_team", "global")]
             if any(k[:2] == (p, e) for k in grid)]
+
+    def relay_vs_best_global(size: int, n: int) -> str:
+        relay = grid.get(("policy", "relay", size, n))
+        best = max((v for k, v in grid.items() if k[1:] == ("global", size, n)),
+                   key=lambda v: v[0], default=None)
+        if relay is None or best is None or min(relay[2], best[2]) < 2:
+            return "-"
+        p = stats.ttest_ind_from_stats(*relay, *best, equal_var=False).pvalue
+        return f"{relay[0] / best[0]:.3f} (p {p:.1g})"
+
     text = []
     for size in sizes:
         teams = sorted({n for _, _, g, n in grid if g == size})
@@ -247,7 +261,8 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
             cells = [grid.get((planner, exchange, size, n)) for n in teams]
             text.append(f"| {planner}, {exchange.replace('_', ' ')} | " + " | ".join(
                 "-" if c is None else f"{c[0]:.2f} ({c[1]:.2f})" for c in cells) + " |")
-        text.append("")
+        text += ["| relay / best global | " + " | ".join(
+            relay_vs_best_global(size, n) for n in teams) + " |", ""]
     return "\n".join(text)
 
 

@@ -1,9 +1,12 @@
 """benchmarks/scale.py --collected: the grid's tables from JSON lines collected over runs."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
+
+from scipy import stats
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
 
@@ -23,7 +26,8 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
              json.dumps({"name": "scale.relay_vs_best_global_16x", "value": 0.9}),
              line("nbv_team.global.g125.n64", 97.97, 0.58),
              line("policy.relay.g125.n16", 68.96, 3.15),  # a later run of the same cell wins
-             line("policy.global.g75.n32", 92.1, 2.04)]
+             line("policy.global.g75.n32", 92.1, 2.04),
+             line("policy.global.g125.n16", 74.21, 2.39)]
     path = tmp_path / "grid.jsonl"
     path.write_text("\n".join(lines) + "\n")
     figure = tmp_path / "grid.png"
@@ -38,8 +42,15 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
     assert out[g125 + 2] == "| planner, exchange | N = 16 | N = 64 |"
     # "-" where a cell has no figure
     assert out[g125 + 4:g125 + 7] == ["| policy, relay | 68.96 (3.15) | - |",
-                                      "| policy, global | - | - |",
+                                      "| policy, global | 74.21 (2.39) | - |",
                                       "| nbv_team, global | - | 97.97 (0.58) |"]
+    # Welch's test by hand: t = -13.29 on 184.6 degrees of freedom
+    va, vb = 3.15**2 / 100, 2.39**2 / 100
+    t = (68.96 - 74.21) / math.sqrt(va + vb)
+    df = (va + vb) ** 2 / (va**2 / 99 + vb**2 / 99)
+    p = 2 * stats.t.sf(abs(t), df)
+    assert out[g125 + 7] == f"| relay / best global | {68.96 / 74.21:.3f} (p {p:.1g}) | - |"
+    assert out[g75 + 7] == "| relay / best global | - |"
     assert figure.stat().st_size > 0
 
 
