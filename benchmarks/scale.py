@@ -26,8 +26,9 @@ W worlds per cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % fo
 95% half-width) and, with --figure, % found against N per world size with std bands.
 Every cell's worlds follow from eval.seed and the world's index alone, so the grid can be
 split over runs (--world-sizes, --grid-teams, --exchanges, --global-planners), in
-parallel on one GPU too; --collected FILE prints the grid's tables (mean % found, std over
-the worlds) from the lines collected in FILE and draws --figure from them.
+parallel on one GPU too; --collected FILE prints the grid's tables from the lines
+collected in FILE (mean % found, std over the worlds, and per cell the policy with relay
+over the best planner with global communication, with their Welch p) and draws --figure.
 
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
