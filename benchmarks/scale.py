@@ -143,6 +143,10 @@ def main(argv=None) -> int:
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
 EXCHANGES = ("global", "single_hop", "relay")
 GLOBAL_PLANNERS = ("policy", "coordinated", "nbv_team")
+# (planner, exchange) pairs of a cell, in the tables' order: single hop and relay are the
+# policy's alone
+PAIRS = (("policy", "single_hop"), ("policy", "relay"),
+         *((planner, "global") for planner in GLOBAL_PLANNERS))
 
 
 def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
@@ -237,10 +241,7 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
     planner with global communication, with the Welch p of the two (from means and stds)."""
     from scipy import stats  # noqa: PLC0415
 
-    rows = [(p, e) for p, e in
-            [("policy", "single_hop"), ("policy", "relay"), ("policy", "global"),
-             ("coordinated", "global"), ("nbv_team", "global")]
-            if any(k[:2] == (p, e) for k in grid)]
+    rows = [pair for pair in PAIRS if any(k[:2] == pair for k in grid)]
 
     def relay_vs_best_global(size: int, n: int) -> str:
         relay = grid.get(("policy", "relay", size, n))
