@@ -123,15 +123,17 @@ def test_deciding_in_turn_records_the_observations_each_robot_decided_on(cfg, tr
     from: rescoring the stored observations gives back the sampled log-probabilities."""
     envs, robots = cfg.train.envs, cfg.robots.count
     keys = jax.random.split(jax.random.PRNGKey(5), envs)
-    obs, states = jax.vmap(envmod.reset, in_axes=(0, None, None))(
-        keys, trainer.env_params, DynamicParams.from_config(cfg))
+    # Jitted: dispatching the vmapped reset and observation op by op costs more than compiling.
+    reset = jax.jit(jax.vmap(envmod.reset, in_axes=(0, None, None)), static_argnums=1)
+    obs, states = reset(keys, trainer.env_params, DynamicParams.from_config(cfg))
     # Every robot hears every other and has a copy of robot 0's map and candidates, so
     # robot 1 sees robot 0's view claimed.
     twin = lambda x: x.at[:, 1:].set(x[:, :1])  # noqa: E731
     states = states.replace(heard=jnp.ones_like(states.heard), occupancy=twin(states.occupancy),
                             building_top=twin(states.building_top),
                             candidates=jax.tree.map(twin, states.candidates))
-    obs = jax.vmap(envmod.observe, in_axes=(0, None))(states, trainer.env_params)
+    obs = jax.jit(jax.vmap(envmod.observe, in_axes=(0, None)), static_argnums=1)(
+        states, trainer.env_params)
     params = trainer.init().params
     memory = jnp.zeros((envs, robots, cfg.policy.width))
     act = jax.jit(lambda obs, states: ppo.act_in_turn(
