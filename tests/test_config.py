@@ -53,6 +53,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.size=6", "world.size: got 6"),
         ("candidates.positions=0", "candidates.positions: got 0"),
         ("world.layout=spiral", "allowed: one of grid, random"),
+        ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),
         ("world.buildings=400", "buildings fit"),

@@ -108,7 +108,8 @@ def test_two_flight_values_match_a_numpy_reference(valued):
             after[_seen(codes, c["position"][j], c["heading"][j])] = FREE
             unknown, facade = runtime_view.view_gain(
                 after, state.building_top[e, 0], s.position, s.heading,
-                PARAMS.sensor.fov_deg, PARAMS.sensor.range, PARAMS.size)
+                runtime_view.GainModel(PARAMS.sensor.fov_deg, PARAMS.sensor.range),
+                PARAMS.size)
             g1 = np.float64(first_gain[e, j])
             both = (g1 + unknown + FACADE * facade) * shell / np.maximum(
                 c["cost"][j] + s.cost, spec.COST_FLOOR)

@@ -8,6 +8,7 @@ tests/test_runtime_numpy_only.py and the exporter in tests/test_export.py."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -181,6 +182,21 @@ def test_missing_header_fields_are_named(exported, tmp_path):
         weights.load(path)
 
 
+def test_gain_model_travels_in_the_header_and_older_headers_keep_the_default():
+    see_through = dataclasses.replace(CFG, sensor=dataclasses.replace(
+        CFG.sensor, gain_occlusion=False, gain_facade="column"))
+    assert spec_of(see_through).gain == view.GainModel(CFG.sensor.fov_deg, CFG.sensor.range,
+                                                        False, "column")
+    header = weights.jsonable(export.header(see_through))
+    for key in ("gain_occlusion", "gain_facade"):  # exported before these settings
+        del header["config"]["sensor"][key]
+    assert RuntimeSpec.from_header(header).gain == spec_of().gain == view.GainModel(
+        CFG.sensor.fov_deg, CFG.sensor.range, True, "nearby")
+    header["config"]["sensor"]["gain_facade"] = "roof"
+    with pytest.raises(WeightsFormatError, match="gain_facade 'roof' is not one of nearby, column"):
+        RuntimeSpec.from_header(header)
+
+
 # ---------------------------------------------------------------------------------------
 # Ports of the JAX math
 
@@ -268,12 +284,10 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
     others = np.float32([[0.45, 0.4, 0.38]])
     many = np_candidates.sample_many(uniforms, position, heading, budget, maps, g, others,
                                      spec)
-    gains = view.view_gain(maps, top, many.position, many.heading, spec.fov_deg,
-                           spec.sensor_range, g)
+    gains = view.view_gain(maps, top, many.position, many.heading, spec.gain, g)
     # A map with unknown voxels scattered everywhere, so that every pose sees some.
     patchy = np.where(rng.random(g ** 3) < 0.3, UNKNOWN, base.reshape(-1)).astype(np.int8)
-    after = view.after_views(patchy, top, position, heading, spec.fov_deg,
-                             spec.sensor_range, g)
+    after = view.after_views(patchy, top, position, heading, spec.gain, g)
     margin = after.margin
     # The padded copies hold the map inside OCCUPIED margins; both read the same copies.
     inner = after.codes.reshape(4, g + 2 * margin, g + 2 * margin, g + 2 * margin)[
@@ -282,8 +296,7 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
         np.stack(np.unravel_index(np.arange(g ** 3), (g,) * 3), -1)), axis=1) == OCCUPIED)
     many_after = np_candidates.sample_many(uniforms, position, heading, budget, after, g,
                                            others, spec)
-    gains_after = view.view_gain(after, top, many.position, many.heading, spec.fov_deg,
-                                 spec.sensor_range, g)
+    gains_after = view.view_gain(after, top, many.position, many.heading, spec.gain, g)
     for b in range(4):
         one_map = OccupancyMap(g)
         one_map.codes[:] = maps[b]
@@ -292,11 +305,11 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
         for got, want in zip(many, one):
             np.testing.assert_array_equal(got[b], want)
         for got, want in zip(gains, view.view_gain(maps[b], top, one.position, one.heading,
-                                                   spec.fov_deg, spec.sensor_range, g)):
+                                                   spec.gain, g)):
             np.testing.assert_array_equal(got[b], want)
         # after_views: the map with what pose b sees of it counted as FREE, and no more.
-        seen = [view.view_gain(m, top, position[b:b + 1], heading[b:b + 1], spec.fov_deg,
-                               spec.sensor_range, g)[0][0] for m in (patchy, inner[b])]
+        seen = [view.view_gain(m, top, position[b:b + 1], heading[b:b + 1], spec.gain,
+                               g)[0][0] for m in (patchy, inner[b])]
         assert seen[0] > 0 and seen[1] == 0
         changed = inner[b] != patchy
         assert np.all(inner[b][changed] == FREE) and np.all(patchy[changed] == UNKNOWN)
@@ -306,8 +319,7 @@ def test_candidates_and_view_gain_for_many_poses_and_maps_match_one_at_a_time():
                 inner[b], g, others, spec)):
             np.testing.assert_array_equal(got[b], want[0])
         for got, want in zip(gains_after, view.view_gain(inner[b], top, many.position[b],
-                                                         many.heading[b], spec.fov_deg,
-                                                         spec.sensor_range, g)):
+                                                         many.heading[b], spec.gain, g)):
             np.testing.assert_array_equal(got[b], want)
     assert any(many.valid[b].sum() != many.valid[0].sum() for b in range(1, 4))
 

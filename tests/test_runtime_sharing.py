@@ -36,6 +36,16 @@ from test_runtime import CFG, spec_of
 F32 = np.float32
 G = 20
 SENSOR = SensorConfig()
+# The reference's frustum (sees through buildings) with windows inside footprints.
+SEE_THROUGH = SensorConfig(gain_occlusion=False, gain_facade="column")
+
+
+def model_of(sensor: SensorConfig) -> view.GainModel:
+    return view.GainModel(sensor.fov_deg, sensor.range, sensor.gain_occlusion,
+                          sensor.gain_facade)
+
+
+MODEL = model_of(SENSOR)
 
 
 def brute_tops(grid: np.ndarray) -> np.ndarray:
@@ -57,12 +67,14 @@ def reference_gain(grid, top, position, heading, sensor=SENSOR):
             x, y, z = c[0] + dx, c[1] + dy, c[2] + dz
             if not (0 <= x < size and 0 <= y < size and 0 <= z < size):
                 break
-            if grid[x, y, z] == OCCUPIED:
+            if grid[x, y, z] == OCCUPIED and sensor.gain_occlusion:
                 break
             if grid[x, y, z] == UNKNOWN:
                 unknown += w
-                near = max(top[i, j] for i, j in ((x, y), (x - 1, y), (x + 1, y), (x, y - 1),
-                                                  (x, y + 1)) if 0 <= i < size and 0 <= j < size)
+                columns = ((x, y), (x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1))
+                if sensor.gain_facade == "column":
+                    columns = columns[:1]
+                near = max(top[i, j] for i, j in columns if 0 <= i < size and 0 <= j < size)
                 facade += w * (near > 0 and z <= near)
     total = len(offsets[heading]) * weights.sum()
     return unknown / total, facade / total
@@ -107,22 +119,24 @@ def test_view_gain_equals_the_jax_one_and_the_written_rule():
     gain = jax.jit(jax_view.view_gain, static_argnums=(3, 4))
     peers = jax.jit(jax_view.peer_distance, static_argnums=3)
     costs = jax.jit(jax_view.per_cost, static_argnums=2)
-    for trial in range(6):
-        grid = random_map(rng, p_occupied=0.05 * (trial % 3), p_unknown=0.3 + 0.1 * trial)
+    for trial in range(8):
+        sensor = SEE_THROUGH if trial >= 6 else SENSOR
+        grid = random_map(rng, p_occupied=0.05 * (trial % 3 + trial // 6),
+                          p_unknown=0.3 + 0.1 * (trial % 6))
         # Tops from the map, or arbitrary ones (the gain reads whatever tops it is given).
         top = brute_tops(grid) if trial % 2 else rng.integers(0, G + 1, (G, G)).astype(np.int8)
         position = rng.random((12, 3)).astype(F32)
         position[:3] = [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0], [0.99, 0.02, 0.5]]  # at the border
         want_unknown, want_facade = (np.asarray(x).reshape(-1) for x in gain(
-            jnp.asarray(grid), jnp.asarray(top), jnp.asarray(position), SENSOR, G))
+            jnp.asarray(grid), jnp.asarray(top), jnp.asarray(position), sensor, G))
         poses, headings = np.repeat(position, 4, axis=0), np.tile(np.arange(4), 12)
         unknown, facade = view.view_gain(grid.reshape(-1), top, poses, headings,
-                                         SENSOR.fov_deg, SENSOR.range, G)
+                                         model_of(sensor), G)
         np.testing.assert_array_equal(unknown, want_unknown)
         np.testing.assert_array_equal(facade, want_facade)
         for k in range(0, 48, 5):
             np.testing.assert_allclose((unknown[k], facade[k]), reference_gain(
-                grid, top, poses[k], headings[k]), rtol=1e-6, atol=0)
+                grid, top, poses[k], headings[k], sensor), rtol=1e-6, atol=0)
         cost = rng.random(48).astype(F32) * F32(0.3)
         cost[:4] = 0.0  # padding turns in place
         np.testing.assert_array_equal(view.per_cost(unknown, cost, 0.21),
@@ -142,7 +156,7 @@ def test_view_gain_by_hand():
 
     def gain(grid, top, heading=0):
         u, f = view.view_gain(grid.reshape(-1), top, centre[None], np.int32([heading]),
-                              SENSOR.fov_deg, SENSOR.range, G)
+                              MODEL, G)
         return float(u[0]), float(f[0])
 
     # Nothing known: everything in view is unknown, and no building is known.

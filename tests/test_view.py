@@ -3,6 +3,7 @@ poses, against hand-worked cases and a loop-by-loop reference; the next-best-vie
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import jax
@@ -23,13 +24,23 @@ G = 20
 gain = jax.jit(view.view_gain, static_argnums=(3, 4))
 
 
-def reference_gain(occupancy, top, position):
+# Both settings of the gain's model (sensor.gain_occlusion, sensor.gain_facade) away from
+# the defaults: the reference's frustum and windows inside footprints.
+SEE_THROUGH = dataclasses.replace(SENSOR, gain_occlusion=False, gain_facade="column")
+SENSORS = [SENSOR, dataclasses.replace(SENSOR, gain_occlusion=False),
+           dataclasses.replace(SENSOR, gain_facade="column"), SEE_THROUGH]
+
+
+def reference_gain(occupancy, top, position, sensor=SENSOR):
     """The rule of jaxmripp.spec.view, one sample at a time."""
-    offsets, weights = spec.gain_table(SENSOR.fov_deg, SENSOR.range, G)
+    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, G)
     camera = np.clip(np.floor(position * G), 0, G - 1).astype(int)
     padded = np.pad(top.astype(int), 1)
+    neighbours = [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)]
+    if sensor.gain_facade == "column":
+        neighbours = [(0, 0)]
     near = np.max([padded[1 + dx:G + 1 + dx, 1 + dy:G + 1 + dy]
-                   for dx, dy in [(0, 0), (1, 0), (-1, 0), (0, 1), (0, -1)]], axis=0)
+                   for dx, dy in neighbours], axis=0)
     out = np.zeros((len(position), 4, 2))
     for k, c in enumerate(camera):
         for h in range(4):
@@ -39,7 +50,7 @@ def reference_gain(occupancy, top, position):
                     if not (0 <= x < G and 0 <= y < G and 0 <= z < G):
                         break
                     code = occupancy[x, y, z]
-                    if code == OCCUPIED:
+                    if code == OCCUPIED and sensor.gain_occlusion:
                         break
                     if code == UNKNOWN:
                         out[k, h, 0] += w
@@ -96,15 +107,40 @@ def test_unknown_world_is_all_gain_and_a_wall_ahead_hides_what_is_behind_it():
                                reference_gain(occupancy, np.asarray(top), position), atol=1e-6)
 
 
-@pytest.mark.parametrize("seed", range(3))
-def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed):
+def test_a_sensor_that_sees_through_buildings_gains_behind_a_known_wall():
+    """Without occlusion a known building voxel ahead hides nothing (only it is not
+    unknown); with column facade only its own column is facade."""
+    occupancy = np.full((G, G, G), UNKNOWN, np.int8)
+    occupancy[13, 10, 10] = OCCUPIED  # 3 voxels ahead of voxel (10, 10, 10); top 11
+    top = np.zeros((G, G), np.int8)
+    top[13, 10] = 11
+    position = np.full((1, 3), 0.5, np.float32)
+    occluded, _ = (np.asarray(x) for x in gain(occupancy, top, position, SENSOR, G))
+    unknown, facade = (np.asarray(x) for x in gain(occupancy, top, position, SEE_THROUGH, G))
+    # The central ray (along +x, samples d = 1..5, weights d^2 of 9 x 55 in all) meets it
+    # at d = 3: with occlusion it loses d = 3, 4, 5; without, only d = 3.
+    assert occluded[0, 0] == pytest.approx(1 - (9 + 16 + 25) / (9 * 55), abs=1e-6)
+    assert unknown[0, 0] == pytest.approx(1 - 9 / (9 * 55), abs=1e-6)
+    np.testing.assert_array_equal(unknown[0, 1:], 1.0)
+    # Column (13, 10) up to z = 11 is facade: of the samples in it, the downward edge ray
+    # ((3, 0, -2) / sqrt(13)) has d = 4 at (13, 10, 8); the upward one's lands at z = 12,
+    # the central ray's on the known voxel. Other headings look away from it.
+    assert facade[0, 0] == pytest.approx(16 / (9 * 55), abs=1e-6)
+    np.testing.assert_array_equal(facade[0, 1:], 0.0)
+    np.testing.assert_allclose(np.stack([unknown, facade], -1),
+                               reference_gain(occupancy, top, position, SEE_THROUGH), atol=1e-6)
+
+
+@pytest.mark.parametrize("seed,sensor", [(0, SENSORS[0]), (1, SENSORS[0]), (2, SENSORS[0]),
+                                         (3, SENSORS[1]), (4, SENSORS[2]), (5, SENSORS[3])])
+def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed, sensor):
     rng = np.random.default_rng(seed)
     occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(G, G, G),
                            p=[0.5, 0.45, 0.05]).astype(np.int8)
     top = np.max(np.where(occupancy == OCCUPIED, np.arange(G) + 1, 0), axis=-1).astype(np.int8)
     position = rng.uniform(0, 1, (5, 3)).astype(np.float32)
-    unknown, facade = gain(occupancy, top, position, SENSOR, G)
-    expected = reference_gain(occupancy, top, position)
+    unknown, facade = gain(occupancy, top, position, sensor, G)
+    expected = reference_gain(occupancy, top, position, sensor)
     np.testing.assert_allclose(np.asarray(unknown), expected[..., 0], atol=1e-6)
     np.testing.assert_allclose(np.asarray(facade), expected[..., 1], atol=1e-6)
 
@@ -126,7 +162,7 @@ def test_gain_in_a_large_world_equals_the_runtime():
     unknown, facade = gain(occupancy, top, position, sensor, size)
     poses, headings = np.repeat(position, 4, axis=0), np.tile(np.arange(4), 3)
     expected = runtime_view.view_gain(occupancy.reshape(-1), top, poses, headings,
-                                      sensor.fov_deg, sensor.range, size)
+                                      runtime_view.GainModel(sensor.fov_deg, sensor.range), size)
     assert np.asarray(facade).max() > 0
     np.testing.assert_allclose(np.asarray(unknown).reshape(-1), expected[0], atol=1e-6)
     np.testing.assert_allclose(np.asarray(facade).reshape(-1), expected[1], atol=1e-6)

@@ -57,6 +57,13 @@ class SensorConfig:
     fov_deg: float = 90.0
     range: float = 0.24  # fraction of the world size
     rays_per_voxel: float = 2.0  # ray grid density at the far end of the range
+    # What the view-gain features (jaxmripp.spec.view) assume of this sensor and the world:
+    # whether voxels mapped OCCUPIED block the gain's rays (the raycast sensor's occlusion;
+    # false: they do not, as for the frustum, which sees through buildings), and which
+    # building tops mark unknown voxels as facade: "nearby" (a column's and its four
+    # neighbours': windows on facades) | "column" (its own: windows inside footprints)
+    gain_occlusion: bool = True
+    gain_facade: str = "nearby"
 
 
 @dataclasses.dataclass(frozen=True)

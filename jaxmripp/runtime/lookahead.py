@@ -48,7 +48,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     if not len(first):
         return values.astype(F32)
     after = view.after_views(occupancy.codes, occupancy.top, c.position[first],
-                             c.heading[first], spec.fov_deg, spec.sensor_range, occupancy.size)
+                             c.heading[first], spec.gain, occupancy.size)
     following = cands.sample_many(draws, c.position[first], c.heading[first],
                                   F32(budget_left) - c.cost[first], after, occupancy.size,
                                   others, spec)
@@ -58,7 +58,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
     unknown[valid], facade[valid] = view.view_gain(
         after, occupancy.top, following.position[valid], following.heading[valid],
-        spec.fov_deg, spec.sensor_range, occupancy.size, rows=np.nonzero(valid)[0])
+        spec.gain, occupancy.size, rows=np.nonzero(valid)[0])
     rates = view.per_cost(gain[first, None] + discount * layout.view_value(unknown, facade,
                                                                           weight),
                           c.cost[first, None] + discount * following.cost, shell)

@@ -30,20 +30,20 @@ def _fraction_of(budget_initial) -> F32:
 def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_initial,
                        max_distance: float, utility_gp: GaussianProcess,
                        comm_gp: GaussianProcess, occupancy: OccupancyMap, heard: np.ndarray,
-                       fov_deg: float, sensor_range: float) -> np.ndarray:
+                       gain: view.GainModel) -> np.ndarray:
     """(L, F) float32 per-candidate features, columns in FEATURES order.
 
     max_distance: the shell's outer radius, so dx, dy, dz lie in [-1, 1]; the GP columns
     are the posterior mean and the square root of the latent variance at each pose; the
-    view columns read `occupancy` (the merged map and its tops) with the sensor's field
-    of view and range; heard: (M, 3) positions of the robots heard this round.
+    view columns read `occupancy` (the merged map and its tops) with the gain's model of
+    the sensor; heard: (M, 3) positions of the robots heard this round.
     """
     poses = np.concatenate([c.position, HEADING_ANGLES[c.heading][:, None]], axis=1)
     u_mean, u_var = utility_gp.predict(poses)
     c_mean, c_var = comm_gp.predict(poses)
     budget = _fraction_of(budget_initial)
     unknown, facade = view.view_gain(occupancy.codes, occupancy.top, c.position, c.heading,
-                                     fov_deg, sensor_range, occupancy.size)
+                                     gain, occupancy.size)
     features = np.concatenate([
         (c.position - position) / F32(max_distance),
         c.position,

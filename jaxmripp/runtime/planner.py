@@ -323,8 +323,7 @@ class OnboardPlanner(RadioExchange):
         heard = self._known_robots()
         features = observation.candidate_features(
             c, self.position, self.budget_left, self.budget_initial, self.spec.shell[1],
-            self.utility_gp, self.comm_gp, self.map, heard, self.spec.fov_deg,
-            self.spec.sensor_range)
+            self.utility_gp, self.comm_gp, self.map, heard, self.spec.gain)
         if self.spec.ahead_branches and ahead:
             if ahead_uniforms is None:
                 ahead_uniforms = self.rng.random(lookahead.draw_shape(self.spec), F32)

@@ -25,11 +25,27 @@ from jaxmripp.spec import view as spec
 F32 = np.float32
 
 
+class GainModel(NamedTuple):
+    """What the view gain assumes of the sensor and the world (`jaxmripp.spec.view`):
+    the camera's field of view and range, whether voxels mapped OCCUPIED stop its rays and
+    which tops mark facade voxels (`spec.FACADE_TOPS`)."""
+
+    fov_deg: float
+    sensor_range: float
+    occlusion: bool = True
+    facade: str = "nearby"
+
+
 def nearby_tops(top: np.ndarray) -> np.ndarray:
     """(G, G) -> (G, G) int32: the largest top of each column and its four neighbours."""
     padded = np.pad(np.asarray(top, np.int32), 1)
     return np.maximum.reduce([padded[1:-1, 1:-1], padded[:-2, 1:-1], padded[2:, 1:-1],
                               padded[1:-1, :-2], padded[1:-1, 2:]])
+
+
+def facade_tops(top: np.ndarray, facade: str) -> np.ndarray:
+    """(G, G) tops -> (G, G) the tops that mark facade voxels (`GainModel.facade`)."""
+    return nearby_tops(top) if facade == "nearby" else np.asarray(top, np.int32)
 
 
 class GainTable(NamedTuple):
@@ -40,7 +56,7 @@ class GainTable(NamedTuple):
     margin: int
     flat: np.ndarray  # (4, R, S) int64 offsets into a padded grid, per heading
     column: np.ndarray  # (4, R, S) the same into its (side, side) columns
-    z: np.ndarray  # (4, R, S) the samples' z offsets
+    xyz: np.ndarray  # (3, 4, R, S) the samples' x, y and z offsets
     weights: np.ndarray  # (R * S,) float32, the spec's per-sample weights, ray-major
     scale: np.float32  # 1 / the weights' total, as XLA multiplies by it (module docstring)
 
@@ -53,8 +69,8 @@ def gain_table(fov_deg: float, sensor_range: float, size: int) -> GainTable:
     offsets = offsets.astype(np.int64)
     column = offsets[..., 0] * side + offsets[..., 1]
     total = F32(offsets.shape[1] * int(weights.sum()))
-    return GainTable(margin, column * side + offsets[..., 2], column, offsets[..., 2],
-                     np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
+    return GainTable(margin, column * side + offsets[..., 2], column,
+                     np.moveaxis(offsets, -1, 0), np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
 
 
 def padded(codes: np.ndarray | PaddedMaps, table: GainTable, size: int) -> PaddedMaps:
@@ -68,19 +84,18 @@ def padded(codes: np.ndarray | PaddedMaps, table: GainTable, size: int) -> Padde
 
 
 def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarray,
-             heading: np.ndarray, fov_deg: float, sensor_range: float, size: int,
-             rows: np.ndarray | None = None):
+             heading: np.ndarray, model: GainModel, size: int, rows: np.ndarray | None = None):
     """Poses (..., 3) / (...) -> the index (P, R, S) of every gain sample of the P poses
     in the padded maps (map b at b side^3 onwards), which of them are unknown and which
     facade (both (P, R, S) bool), the maps and the table. `codes`: (G^3,), or (B, G^3) (or
     their `PaddedMaps`) with `rows` (...) the map each pose looks into (default: poses
     (B, L, 3) / (B, L), pose (b, l) in map b)."""
-    table = gain_table(fov_deg, sensor_range, size)
+    table = gain_table(model.fov_deg, model.sensor_range, size)
     maps = padded(codes, table, size)
     margin, side = table.margin, maps.side
     inner = slice(margin, margin + size)
     near = np.zeros((side, side), np.int8)
-    near[inner, inner] = nearby_tops(top)
+    near[inner, inner] = facade_tops(top, model.facade)
     heading = np.asarray(heading, np.int64)
     if len(maps.codes) == 1:
         rows = np.zeros(heading.shape, np.int64)
@@ -93,26 +108,33 @@ def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarr
     start = row * side ** 3 + camera_column * side + camera[:, 2]
     index = start[:, None, None] + table.flat[heading]
     code = maps.codes.reshape(-1)[index]
-    # A sample is clear when no earlier sample of its ray hit OCCUPIED (the margin is).
-    stops = code == OCCUPIED
+    # The samples' map coordinates along axis a, (P, R, S).
+    along = lambda a: (camera[:, a] - margin)[:, None, None] + table.xyz[a][heading]  # noqa: E731
+    z = along(2)
+    # A sample is clear when no earlier sample of its ray hit OCCUPIED (the margin is) or,
+    # without occlusion, left the grid.
+    if model.occlusion:
+        stops = code == OCCUPIED
+    else:
+        stops = np.zeros(code.shape, bool)
+        for coordinate in (along(0), along(1), z):
+            stops |= (coordinate < 0) | (coordinate >= size)
     clear = np.ones_like(stops)
     clear[..., 1:] = ~np.logical_or.accumulate(stops, axis=-1)[..., :-1]
     unknown = clear & (code == UNKNOWN)
     near = near.reshape(-1)[camera_column[:, None, None] + table.column[heading]]
-    z = (camera[:, 2] - margin)[:, None, None] + table.z[heading]
     facade = unknown & (near > 0) & (z <= near)
     return index, unknown, facade, maps, table
 
 
 def view_gain(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarray,
-              heading: np.ndarray, fov_deg: float, sensor_range: float, size: int,
+              heading: np.ndarray, model: GainModel, size: int,
               rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
     view_facade), each (L,) float32; with B maps' codes (B, G^3) or `PaddedMaps` (sharing
     the tops), poses (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b, or poses
     (L, 3) / (L,) with `rows` (L,) -> each (L,), pose l seen in map rows[l]."""
-    _, unknown, facade, _, table = _samples(codes, top, position, heading, fov_deg,
-                                            sensor_range, size, rows)
+    _, unknown, facade, _, table = _samples(codes, top, position, heading, model, size, rows)
     # Weighted counts as one float32 product each: integers far below 2^24, so exact.
     unknown_sum = unknown.reshape(-1, table.weights.size).astype(F32) @ table.weights
     facade_sum = facade.reshape(-1, table.weights.size).astype(F32) @ table.weights
@@ -122,12 +144,11 @@ def view_gain(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndar
 
 
 def after_views(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
-                fov_deg: float, sensor_range: float, size: int) -> PaddedMaps:
+                model: GainModel, size: int) -> PaddedMaps:
     """A map's flat (G^3,) codes, poses (B, 3) / (B,) -> B padded copies of the map (for
     `view_gain` and `known_free`): copy b with the unknown voxels pose b sees counted as
     FREE, the part of the map it would reveal (`jaxmripp.sim.view.unknown_in_view`)."""
-    index, unknown, _, one, _ = _samples(codes, top, position, heading, fov_deg,
-                                         sensor_range, size)
+    index, unknown, _, one, _ = _samples(codes, top, position, heading, model, size)
     after = np.repeat(one.codes, len(index), axis=0)
     copy = np.broadcast_to(np.arange(len(index))[:, None, None], index.shape)
     after.reshape(-1)[copy[unknown] * after.shape[1] + index[unknown]] = FREE

@@ -45,8 +45,10 @@ import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
+from jaxmripp.runtime.view import GainModel
 from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import ROBOT_STATE, features
+from jaxmripp.spec.view import FACADE_TOPS
 
 FORMAT = "jaxmripp-policy"
 FORMAT_VERSION = 1
@@ -106,6 +108,16 @@ class RuntimeSpec:
     ahead_branches: int = 0
     ahead_discount: float = 2.0
     ahead_facade_weight: float = 2.0
+    # The view gain's model of the sensor and the world (sensor.gain_occlusion and
+    # sensor.gain_facade; jaxmripp.spec.view).
+    gain_occlusion: bool = True
+    gain_facade: str = "nearby"
+
+    @property
+    def gain(self) -> GainModel:
+        """What the view-gain features assume of the sensor (`jaxmripp.runtime.view`)."""
+        return GainModel(self.fov_deg, self.sensor_range, self.gain_occlusion,
+                         self.gain_facade)
 
     @property
     def n_candidates(self) -> int:
@@ -143,6 +155,15 @@ class RuntimeSpec:
         if priority not in PRIORITIES:
             raise WeightsFormatError(f"export header: config.safety.priority {priority!r} is "
                                      f"not one of {', '.join(PRIORITIES)}")
+        gain = {}  # exports from before these settings lack them: the defaults apply
+        if "gain_occlusion" in section("sensor"):
+            gain["gain_occlusion"] = get("sensor", "gain_occlusion", bool)
+        if "gain_facade" in section("sensor"):
+            gain["gain_facade"] = get("sensor", "gain_facade", str)
+            if gain["gain_facade"] not in FACADE_TOPS:
+                raise WeightsFormatError(f"export header: config.sensor.gain_facade "
+                                         f"{gain['gain_facade']!r} is not one of "
+                                         f"{', '.join(FACADE_TOPS)}")
         ahead = {}
         if "ahead" in config:  # exports without the lookahead input may lack the section
             ahead = dict(ahead_branches=get("ahead", "branches", int),
@@ -175,7 +196,7 @@ class RuntimeSpec:
             # Optional in the header (absent: off).
             escape=(get("safety", "escape", bool) if "escape" in section("safety")
                     else False),
-            **ahead,
+            **gain, **ahead,
         )
 
 

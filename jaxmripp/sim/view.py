@@ -15,7 +15,7 @@ import numpy as np
 
 from jaxmripp.config import SensorConfig
 from jaxmripp.sim import geometry
-from jaxmripp.sim.geometry import OCCUPIED, UNKNOWN
+from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.sim.sensing import CastResult, scatter_max, take_flat
 from jaxmripp.spec import view as spec
 
@@ -53,6 +53,11 @@ def nearby_tops(top: jax.Array) -> jax.Array:
         jnp.maximum(padded[1:-1, :-2], padded[1:-1, 2:]))
 
 
+def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
+    """(G, G) tops -> (G, G) the tops that mark facade voxels (`sensor.gain_facade`)."""
+    return nearby_tops(top) if sensor.gain_facade == "nearby" else top
+
+
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
 
 
@@ -73,10 +78,14 @@ def _sample_codes(occupancy: jax.Array, top: jax.Array, position: jax.Array,
         + jnp.clip(z, 0, size - 1)
     # Facade folded into the map first, so that each sample takes one gather: a pass over
     # the map costs less than a second gather per sample.
-    near = nearby_tops(top)[:, :, None]
+    # Without occlusion known buildings are marked FREE here: only leaving the grid (coded
+    # OCCUPIED below) then stops a ray.
+    near = facade_tops(top, sensor)[:, :, None]
     height = jnp.arange(size, dtype=jnp.int8)[None, None, :]
+    known = occupancy if sensor.gain_occlusion else \
+        jnp.where(occupancy == OCCUPIED, jnp.int8(FREE), occupancy)
     marked = jnp.where((occupancy == UNKNOWN) & (near > 0) & (height <= near),
-                       jnp.int8(FACADE), occupancy)
+                       jnp.int8(FACADE), known)
     code = jnp.where(inside, take_flat(marked.reshape(-1), flat), jnp.int8(OCCUPIED))
     return flat, code, weights
 

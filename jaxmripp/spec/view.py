@@ -25,10 +25,19 @@ Samples
     table is built; the table holds integer offsets). A sample is *clear* when no earlier
     sample of its ray is mapped OCCUPIED or lies outside the grid. A clear sample inside
     the grid that is mapped UNKNOWN is *unknown*; it is also *facade* when its height z is
-    at most its column's nearby top (and that top is > 0): unknown space beside or on a
+    at most its column's facade top (and that top is > 0): unknown space beside or on a
     building the team knows, below its known roof -- where unseen facades, and windows,
     are. Each sample weighs d^2 (in voxel units: the volume one ray's share of the view
     covers at that distance, up to a constant).
+
+    Two settings of the config's sensor section (`sensor.gain_occlusion`,
+    `sensor.gain_facade`) fit these rules to a sensor that sees through buildings and to
+    windows inside footprints (the reference's frustum and `world.target_placement:
+    footprint`). Without occlusion a sample is clear when no earlier sample of its ray
+    lies outside the grid: voxels mapped OCCUPIED no longer stop the ray. The facade top
+    is the nearby top ("nearby": windows on facades are seen from the columns beside a
+    building) or the column's own top ("column": a known building column's unknown
+    voxels below its roof are where its unseen windows are).
 
 Features (columns of `jaxmripp.spec.layout.FEATURES`)
     view_unknown          sum of the weights of unknown samples / sum of all weights (of
@@ -57,6 +66,7 @@ COST_FLOOR = 1e-3  # below any real flight or turn cost; guards padding candidat
 PEER_CAP = 5.0  # shell lengths: "nobody near"
 VIEW_FEATURES = ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost")
 INTENT_FEATURES = ("peer_distance",)
+FACADE_TOPS = ("nearby", "column")  # sensor.gain_facade: which tops mark facade voxels
 
 
 def samples_per_ray(sensor_range: float, size: int) -> int:
