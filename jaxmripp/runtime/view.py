@@ -70,7 +70,8 @@ def gain_table(fov_deg: float, sensor_range: float, size: int) -> GainTable:
     column = offsets[..., 0] * side + offsets[..., 1]
     total = F32(offsets.shape[1] * int(weights.sum()))
     return GainTable(margin, column * side + offsets[..., 2], column,
-                     np.moveaxis(offsets, -1, 0), np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
+                     np.moveaxis(offsets, -1, 0),
+                     np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
 
 
 def padded(codes: np.ndarray | PaddedMaps, table: GainTable, size: int) -> PaddedMaps:
@@ -108,8 +109,10 @@ def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarr
     start = row * side ** 3 + camera_column * side + camera[:, 2]
     index = start[:, None, None] + table.flat[heading]
     code = maps.codes.reshape(-1)[index]
-    # The samples' map coordinates along axis a, (P, R, S).
-    along = lambda a: (camera[:, a] - margin)[:, None, None] + table.xyz[a][heading]  # noqa: E731
+    def along(axis: int) -> np.ndarray:
+        """(P, R, S) the samples' map coordinates along `axis`."""
+        return (camera[:, axis] - margin)[:, None, None] + table.xyz[axis][heading]
+
     z = along(2)
     # A sample is clear when no earlier sample of its ray hit OCCUPIED (the margin is) or,
     # without occlusion, left the grid.
