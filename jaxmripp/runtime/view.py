@@ -109,6 +109,7 @@ def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarr
     start = row * side ** 3 + camera_column * side + camera[:, 2]
     index = start[:, None, None] + table.flat[heading]
     code = maps.codes.reshape(-1)[index]
+
     def along(axis: int) -> np.ndarray:
         """(P, R, S) the samples' map coordinates along `axis`."""
         return (camera[:, axis] - margin)[:, None, None] + table.xyz[axis][heading]
