@@ -45,193 +45,13 @@ import numpy as np
 
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
-from jaxmripp.runtime.view import GainModel
-from jaxmripp.spec.flight import PRIORITIES
+from jaxmripp.runtime.spec import GPSpec, RuntimeSpec, header_field  # noqa: F401
 from jaxmripp.spec.layout import ROBOT_STATE, features
-from jaxmripp.spec.view import FACADE_TOPS
 
 FORMAT = "jaxmripp-policy"
 FORMAT_VERSION = 1
 WEIGHTS_FILE = "policy.npz"
 HEADER_FILE = "policy.json"
-
-# ---------------------------------------------------------------------------------------
-# What the planner needs from a config
-
-
-@dataclasses.dataclass(frozen=True)
-class GPSpec:
-    capacity: int
-    length_scale: float
-    heading_scale: float
-    variance: float
-    noise: float
-    catchup_rounds: int
-    eval_grid: int
-
-
-_GP_FIELDS = {"capacity": int, "length_scale": float, "heading_scale": float,
-              "variance": float, "noise": float, "catchup_rounds": int, "eval_grid": int}
-
-
-@dataclasses.dataclass(frozen=True)
-class RuntimeSpec:
-    """The config values the onboard planner uses, read from a header's `config`."""
-
-    size: int  # G, voxels per side of the unit cube
-    positions: int  # K candidate positions; L = 4 K
-    shell: tuple[float, float]
-    oversample: int
-    turn_cost: float
-    team_size: int  # robots.count the policy was trained with (a default only)
-    start: tuple[float, float, float]
-    start_heading: int
-    fov_deg: float  # the camera's, for the view-gain features (jaxmripp.spec.view)
-    sensor_range: float
-    radio_range: float
-    relay: bool
-    share_maps: bool  # robots in range exchange map deltas (jaxmripp.spec.sharing)
-    collision_distance: float
-    gp: GPSpec
-    utility_norm: float
-    max_steps: int
-    # Safe flight (jaxmripp.spec.flight): the obstacle rule (always "known_free" here),
-    # whether the first sense is a take-off scan, whether robots exchange intents and hold,
-    # who goes first ("id" or "budget") and whether robots too close may part (escape).
-    flight: str = "known_free"
-    takeoff_scan: bool = True
-    intents: bool = True
-    priority: str = "id"
-    escape: bool = False
-    # The lookahead input (jaxmripp.spec.layout): candidates followed (0: no such input),
-    # the later flight's weight and the facade weight of its view value.
-    ahead_branches: int = 0
-    ahead_discount: float = 2.0
-    ahead_facade_weight: float = 2.0
-    # The view gain's model of the sensor and the world (sensor.gain_occlusion and
-    # sensor.gain_facade; jaxmripp.spec.view).
-    gain_occlusion: bool = True
-    gain_facade: str = "nearby"
-
-    @property
-    def gain(self) -> GainModel:
-        """What the view-gain features assume of the sensor (`jaxmripp.runtime.view`)."""
-        return GainModel(self.fov_deg, self.sensor_range, self.gain_occlusion,
-                         self.gain_facade)
-
-    @property
-    def n_candidates(self) -> int:
-        return 4 * self.positions
-
-    @property
-    def features(self) -> tuple[str, ...]:
-        """The policy's input columns (`jaxmripp.spec.layout.features`)."""
-        return features(self.ahead_branches > 0)
-
-    @classmethod
-    def from_header(cls, header: Mapping[str, Any]) -> "RuntimeSpec":
-        config = _field(header, "config", dict)
-        section = lambda name: _field(config, name, dict, "config.")  # noqa: E731
-
-        def get(name, key, kind):
-            value = _field(section(name), key, object, f"config.{name}.")
-            return _convert(value, kind, f"config.{name}.{key}")
-
-        gp = section("gp")
-        if "safety" not in config:
-            raise WeightsFormatError("export header: missing field config.safety (exported "
-                                     "before the safe-flight rules; re-export the policy)")
-        flight = get("safety", "flight", str)
-        if flight != "known_free":
-            raise WeightsFormatError(
-                f"export header: config.safety.flight is {flight!r}; the onboard runtime "
-                "flies known_free only (export a policy trained with safety.flight="
-                "known_free)")
-        if "share_maps" not in section("radio"):
-            raise WeightsFormatError("export header: missing field config.radio.share_maps "
-                                     "(exported before map sharing, protocol 3; re-export "
-                                     "the policy)")
-        priority = get("safety", "priority", str)
-        if priority not in PRIORITIES:
-            raise WeightsFormatError(f"export header: config.safety.priority {priority!r} is "
-                                     f"not one of {', '.join(PRIORITIES)}")
-        gain = {}  # exports from before these settings lack them: the defaults apply
-        if "gain_occlusion" in section("sensor"):
-            gain["gain_occlusion"] = get("sensor", "gain_occlusion", bool)
-        if "gain_facade" in section("sensor"):
-            gain["gain_facade"] = get("sensor", "gain_facade", str)
-            if gain["gain_facade"] not in FACADE_TOPS:
-                raise WeightsFormatError(f"export header: config.sensor.gain_facade "
-                                         f"{gain['gain_facade']!r} is not one of "
-                                         f"{', '.join(FACADE_TOPS)}")
-        ahead = {}
-        if "ahead" in config:  # exports without the lookahead input may lack the section
-            ahead = dict(ahead_branches=get("ahead", "branches", int),
-                         ahead_discount=get("ahead", "discount", float),
-                         ahead_facade_weight=get("ahead", "facade_weight", float))
-        return cls(
-            size=get("world", "size", int),
-            positions=get("candidates", "positions", int),
-            shell=tuple(get("candidates", "shell", (float, 2))),
-            oversample=get("candidates", "oversample", int),
-            turn_cost=get("robots", "turn_cost", float),
-            team_size=get("robots", "count", int),
-            start=tuple(get("robots", "start", (float, 3))),
-            start_heading=get("robots", "start_heading", int),
-            fov_deg=get("sensor", "fov_deg", float),
-            sensor_range=get("sensor", "range", float),
-            radio_range=get("radio", "range", float),
-            relay=get("radio", "relay", bool),
-            share_maps=get("radio", "share_maps", bool),
-            collision_distance=get("radio", "collision_distance", float),
-            gp=GPSpec(**{name: _convert(_field(gp, name, object, "config.gp."), kind,
-                                        f"config.gp.{name}")
-                         for name, kind in _GP_FIELDS.items()}),
-            utility_norm=get("reward", "utility_norm", float),
-            max_steps=get("episode", "max_steps", int),
-            flight=flight,
-            takeoff_scan=get("safety", "takeoff_scan", bool),
-            intents=get("safety", "intents", bool),
-            priority=priority,
-            # Optional in the header (absent: off).
-            escape=(get("safety", "escape", bool) if "escape" in section("safety")
-                    else False),
-            **gain, **ahead,
-        )
-
-
-def _field(mapping, key, kind, prefix=""):
-    if not isinstance(mapping, Mapping) or key not in mapping:
-        raise WeightsFormatError(f"export header: missing field {prefix}{key}")
-    value = mapping[key]
-    if kind is not object and not isinstance(value, kind):
-        raise WeightsFormatError(f"export header: {prefix}{key} is not a {kind.__name__}")
-    return value
-
-
-def _convert(value, kind, name):
-    if isinstance(kind, tuple):
-        item, count = kind
-        if not isinstance(value, list) or len(value) != count:
-            raise WeightsFormatError(f"export header: {name} is not a list of {count}")
-        return [_convert(v, item, name) for v in value]
-    if kind is bool:
-        if not isinstance(value, bool):
-            raise WeightsFormatError(f"export header: {name} is not true/false")
-        return value
-    if kind is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise WeightsFormatError(f"export header: {name} is not an integer")
-        return value
-    if kind is str:
-        if not isinstance(value, str):
-            raise WeightsFormatError(f"export header: {name} is not a string")
-        return value
-    if isinstance(value, str) and value in ("inf", "-inf"):
-        return float(value)
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or math.isnan(value):
-        raise WeightsFormatError(f"export header: {name} is not a number")
-    return float(value)
 
 
 def config_header(cfg) -> dict[str, Any]:
@@ -360,7 +180,7 @@ def read_header(path: str | Path) -> dict:
     if version != FORMAT_VERSION:
         raise WeightsFormatError(f"{path}: format version {version!r}; this runtime reads "
                                  f"version {FORMAT_VERSION} (re-export with a matching jaxmripp)")
-    layout = _field(header, "layout", dict)
+    layout = header_field(header, "layout", dict)
     expected_features = RuntimeSpec.from_header(header).features
     for key, expected in (("features", expected_features), ("robot_state", ROBOT_STATE)):
         if tuple(layout.get(key, ())) != expected:
@@ -375,14 +195,14 @@ def load(path: str | Path) -> ExportedPolicy:
     json_path = path / HEADER_FILE if path.is_dir() else path
     header = read_header(json_path)
     spec = RuntimeSpec.from_header(header)
-    block = _field(header, "weights", dict)
-    npz_path = json_path.parent / str(_field(block, "file", str, "weights."))
-    expected = _field(block, "sha256", str, "weights.")
+    block = header_field(header, "weights", dict)
+    npz_path = json_path.parent / str(header_field(block, "file", str, "weights."))
+    expected = header_field(block, "sha256", str, "weights.")
     weights = _read_npz(npz_path)
     if weights_sha256(weights) != expected:
         raise CorruptWeightsError(f"{npz_path}: weights do not match the sha256 recorded in "
                                   f"{json_path.name}")
-    config = _field(header, "policy", dict)
+    config = header_field(header, "policy", dict)
     try:
         policy = NumpyPolicy(weights, config)
     except (KeyError, ValueError, TypeError) as err:
