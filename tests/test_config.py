@@ -86,6 +86,8 @@ def test_kickstarting_needs_the_view_features():
         cfgmod.load(None, ["ppo.teacher_updates=-1"])
     with pytest.raises(ConfigError, match="ppo.teacher: got foo; allowed: one of nbv, nbv_ahead, oracle"):
         cfgmod.load(None, ["ppo.teacher=foo"])
+    with pytest.raises(ConfigError, match="ppo.teacher_facade: got -1.0"):
+        cfgmod.load(None, ["ppo.teacher_facade=-1"])
 
 
 def test_near_miss_key_suggests_the_right_name():

@@ -158,15 +158,17 @@ class PPOConfig:
     value_coef: float = 0.5
     max_grad_norm: float = 0.5
     # > 0: kickstarting: the loss adds this weight x the cross-entropy from the
-    # next-best-view choice (jaxmripp.spec.layout.nbv_score with eval.nbv_team_facade) on
+    # next-best-view choice (jaxmripp.spec.layout.nbv_score with teacher_facade) on
     # the observation each robot decided on: nbv_team's choice with policy.claims
     teacher_coef: float = 0.0
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
     # whose choices: nbv (the score on the observation, as above), nbv_ahead (that
     # baseline's choices with the eval.nbv_ahead_* settings, computed in the rollouts) or
-    # oracle (the most undiscovered windows in view on the true world, ties by nbv_team's
-    # score: a privileged teacher, jaxmripp.sim.oracle)
+    # oracle (the most undiscovered windows in view on the true world, ties by the score)
     teacher: str = "nbv"
+    # the weight of unknown facade voxels in the teacher's score; nbv_team's tuned weight
+    # by default (a training setting, chosen by the trained policies on training layouts)
+    teacher_facade: float = 2.0
 
 
 @dataclasses.dataclass(frozen=True)

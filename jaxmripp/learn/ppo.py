@@ -245,14 +245,14 @@ def _teacher(cfg: Config, params: EnvParams):
     if cfg.ppo.teacher == "oracle":
         def windows_first(key, obs, state, dyn):
             # Among views that reveal as many windows, the one nbv_team would take.
-            score = layout.nbv_score(obs.features, e.nbv_team_facade)
+            score = layout.nbv_score(obs.features, cfg.ppo.teacher_facade)
             scale = jnp.max(jnp.where(obs.mask, jnp.abs(score), 0.0), axis=-1, keepdims=True)
             tie = 0.4 * score / jnp.maximum(scale, 1e-6)
             tie = tie + 1e-4 * jax.random.uniform(key, obs.mask.shape)
             return oracle.choose_in_turn(obs.mask, state, params, tie)
         return windows_first
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
-        key, obs, state, dyn, params, e.nbv_team_facade, e.nbv_ahead_discount,
+        key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_ahead_discount,
         e.nbv_ahead_branches, e.nbv_ahead_flights)
 
 
@@ -300,7 +300,7 @@ class Teacher:
     facade: float = struct.field(pytree_node=False, default=0.0)
 
     @classmethod
-    def at(cls, cfg: PPOConfig, update, facade: float) -> "Teacher":
+    def at(cls, cfg: PPOConfig, update) -> "Teacher":
         """The weight at `update` (updates done): `cfg.teacher_coef`, falling linearly to 0
         over the first `cfg.teacher_updates` updates when that is > 0."""
         weight = jnp.float32(cfg.teacher_coef)
@@ -311,7 +311,7 @@ class Teacher:
             total = cfg.teacher_updates
             left = jnp.clip(total - jnp.asarray(update, jnp.int32), 0, total)
             weight = weight * (left.astype(jnp.float32) / total)
-        return cls(weight, facade)
+        return cls(weight, cfg.teacher_facade)
 
 
 NO_TEACHER = Teacher(0.0)  # a Python float: importing this module must not start JAX

@@ -120,7 +120,7 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
     def one_update(dyn, carry, _):
         state, runner = carry
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
-        teacher = ppo.Teacher.at(cfg.ppo, state.update, cfg.eval.nbv_team_facade)
+        teacher = ppo.Teacher.at(cfg.ppo, state.update)
         runner, transitions, stats = ppo.rollout(key_rollout, runner, state.params, network,
                                                  cfg, env_params, dyn, data, teacher)
         last_value = ppo.values(network, state.params, runner.memory, runner.obs,
