@@ -2,9 +2,9 @@
 (`jaxmripp.spec.view`), the map message of protocol 3 and the delta bookkeeping
 (`jaxmripp.spec.sharing`), and the order of the map round in `OnboardPlanner`.
 
-References are written here from the spec's text: tops from a map's OCCUPIED voxels, the
-gain by walking each ray of the spec's table sample by sample, the merge as a whole-map
-merge. The JAX implementations (`jaxmripp.sim.view`) are compared too, since the two sides
+References are written from the spec's text: tops from a map's OCCUPIED voxels and the
+gain by walking each ray of the spec's table sample by sample (tests/gain_reference.py),
+the merge as a whole-map merge. The JAX implementations (`jaxmripp.sim.view`) are compared too, since the two sides
 must agree bit for bit. Whole episodes against the env (maps, tops and features every
 round, with the runtime's deltas) are in tests/test_runtime_episode.py and
 tests/test_runtime_parity.py.
@@ -31,6 +31,7 @@ from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from jaxmripp.runtime.sharing import MapSharing
 from jaxmripp.sim import view as jax_view
 from jaxmripp.spec import view as spec
+from gain_reference import brute_tops, reference_gain
 from test_runtime import CFG, spec_of
 
 F32 = np.float32
@@ -46,38 +47,6 @@ def model_of(sensor: SensorConfig) -> view.GainModel:
 
 
 MODEL = model_of(SENSOR)
-
-
-def brute_tops(grid: np.ndarray) -> np.ndarray:
-    """Per column 1 + the highest z mapped OCCUPIED, 0 when none is."""
-    top = np.zeros(grid.shape[:2], np.int8)
-    for x, y, z in zip(*np.nonzero(grid == OCCUPIED)):
-        top[x, y] = max(top[x, y], z + 1)
-    return top
-
-
-def reference_gain(grid, top, position, heading, sensor=SENSOR):
-    """The spec's gain of one pose, ray by ray and sample by sample (float64 shares)."""
-    size = grid.shape[0]
-    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
-    c = np.clip(np.floor(np.float32(position) * F32(size)), 0, size - 1).astype(int)
-    unknown = facade = 0
-    for ray in offsets[heading]:
-        for (dx, dy, dz), w in zip(ray, weights):
-            x, y, z = c[0] + dx, c[1] + dy, c[2] + dz
-            if not (0 <= x < size and 0 <= y < size and 0 <= z < size):
-                break
-            if grid[x, y, z] == OCCUPIED and sensor.gain_occlusion:
-                break
-            if grid[x, y, z] == UNKNOWN:
-                unknown += w
-                columns = ((x, y), (x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1))
-                if sensor.gain_facade == "column":
-                    columns = columns[:1]
-                near = max(top[i, j] for i, j in columns if 0 <= i < size and 0 <= j < size)
-                facade += w * (near > 0 and z <= near)
-    total = len(offsets[heading]) * weights.sum()
-    return unknown / total, facade / total
 
 
 def random_map(rng, size=G, p_occupied=0.1, p_unknown=0.4):
