@@ -54,6 +54,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("candidates.positions=0", "candidates.positions: got 0"),
         ("world.layout=spiral", "allowed: one of grid, random"),
         ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
+        ("radio.sector_split=rings", "radio.sector_split: got rings; allowed: one of angle, area"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),
         ("world.buildings=400", "buildings fit"),

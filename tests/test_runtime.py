@@ -197,6 +197,17 @@ def test_gain_model_travels_in_the_header_and_older_headers_keep_the_default():
         RuntimeSpec.from_header(header)
 
 
+def test_sector_split_travels_in_the_header_and_older_headers_keep_the_angle_split():
+    by_area = dataclasses.replace(CFG, radio=dataclasses.replace(CFG.radio, sector_split="area"))
+    assert spec_of(by_area).sector_split == "area" and spec_of().sector_split == "angle"
+    header = weights.jsonable(export.header(by_area))
+    del header["config"]["radio"]["sector_split"]  # exported before the setting
+    assert RuntimeSpec.from_header(header).sector_split == "angle"
+    header["config"]["radio"]["sector_split"] = "rings"
+    with pytest.raises(WeightsFormatError, match="sector_split 'rings' is not one of angle, area"):
+        RuntimeSpec.from_header(header)
+
+
 # ---------------------------------------------------------------------------------------
 # Ports of the JAX math
 

@@ -23,6 +23,8 @@ did not happen in any seed we ran (the test prints the smallest JAX margin it me
 
 from __future__ import annotations
 
+import dataclasses
+
 from types import SimpleNamespace
 
 import jax
@@ -316,13 +318,18 @@ def test_the_runtime_holds_exactly_the_robots_the_env_holds(priority):
     assert holds >= 2, "no robot held: pick other seeds"
 
 
-@pytest.mark.parametrize("sectors", [False, True], ids=["whole_mask", "sectors"])
-def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors):
+@pytest.mark.parametrize("split", [None, "angle", "area"],
+                         ids=["whole_mask", "sectors", "equal_area_sectors"])
+def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, split):
     """The runtime policy's logits, memory and choice are the Flax policy's on the env's
-    observation; with `sectors` on both sides (`OnboardPlanner(sectors=True)`, the JAX
-    sweep's `eval.sectors`) also on the same sector-restricted masks."""
+    observation; with sectors on both sides (`OnboardPlanner(sectors=True)`, the JAX
+    sweep's `eval.sectors`; `radio.sector_split` from the export) also on the same
+    sector-restricted masks."""
+    sectors = split is not None
     network, params = init_params(CFG, seed=3)
-    export.export(CFG, params, tmp_path)
+    export.export(dataclasses.replace(CFG, radio=dataclasses.replace(
+        CFG.radio, sector_split=split or "angle")), params, tmp_path)
+    dyn = sim.dyn.with_values(sector_area=split == "area")
     seed = 4
     obs, state = sim.reset(keys_of(seed, 1)[0])
     planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial), sectors=sectors)
@@ -335,7 +342,7 @@ def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors
     def decide(t, i, planner, o, offered, key_act, state):
         nonlocal narrowed
         if i == 0:  # the Flax policy on the env's observation, all robots at once
-            seen = in_sectors(o, state, sim.dyn) if sectors else o
+            seen = in_sectors(o, state, dyn) if sectors else o
             memory["mask"] = np.asarray(seen.mask)
             memory["flax"], logits, _ = apply(params, memory["flax"], seen)
             memory["logits"] = np.asarray(logits)

@@ -63,6 +63,36 @@ def test_a_pad_on_the_far_edge_splits_the_world_into_left_and_right(xp):
             np.asarray(sectors.own_sector(positions, start, robot, 2, xp=xp)), expected)
 
 
+@pytest.mark.parametrize("xp", [np, jnp], ids=["numpy", "jax"])
+def test_an_equal_area_split_of_a_corner_pad_cuts_at_two_thirds_of_the_edges(xp):
+    # From (0, 0), a third of the square is the triangle (0, 0), (1, 0), (1, 2/3): the
+    # cuts lie at atan(2/3) = 33.69 and 56.31 degrees, not at 30 and 60.
+    positions = xp.asarray(_at_azimuths([5, 33.6, 33.8, 56.2, 56.4, 90]))
+    start = xp.asarray([0.0, 0.0, 0.0], xp.float32)
+    owners = [[bool(v) for v in np.asarray(sectors.own_sector(positions, start, robot, 3, xp=xp,
+                                                              equal_area=True))]
+              for robot in range(3)]
+    assert owners == [[True, True, False, False, False, False],
+                      [False, False, True, True, False, False],
+                      [False, False, False, False, True, True]]
+
+
+@pytest.mark.parametrize("start, team", [((0.0, 0.0), 3), ((0.5, 0.0), 4), ((0.3, 1.0), 5),
+                                         ((1.0, 0.7), 2), ((1.0, 1.0), 7)])
+def test_equal_area_sectors_hold_equal_shares_of_random_ground(start, team):
+    """Counted on uniform random ground points: every sector holds 1/N of them (the
+    azimuth split from a corner gives the diagonal sectors more)."""
+    ground = np.random.default_rng(team).random((40_000, 2))
+    points = np.concatenate([ground, np.full((len(ground), 1), 0.2)], axis=1)
+    pad = np.asarray([*start, 0.0], np.float32)
+    shares = [sectors.own_sector(points, pad, robot, team, equal_area=True).mean()
+              for robot in range(team)]
+    np.testing.assert_allclose(shares, 1 / team, atol=0.01)
+    assert sum(shares) == pytest.approx(1.0)
+    by_angle = [sectors.own_sector(points, pad, robot, team).mean() for robot in range(team)]
+    assert max(by_angle) - min(by_angle) > 0.05
+
+
 def test_the_mask_keeps_the_own_sector_while_it_has_views_there():
     gain = FEATURES.index("view_unknown")
     features = np.zeros((2, 4, len(FEATURES)), np.float32)
@@ -83,7 +113,7 @@ def test_robots_in_sectors_are_offered_only_their_own_views():
     cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 8},
                      "safety": {"takeoff_scan": True}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
-    obs, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(4), params, dyn)
+    obs, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(8), params, dyn)
     step = jax.jit(env.step, static_argnums=3)
     for t in range(3):  # the last feasible candidate: flights away from the pads
         last = obs.mask.shape[-1] - 1 - jnp.argmax(obs.mask[:, ::-1], axis=-1)
@@ -93,18 +123,25 @@ def test_robots_in_sectors_are_offered_only_their_own_views():
     for rho, on in [(1.73, True), (1.74, False), (np.inf, False)]:
         far = jax.jit(in_sectors)(obs, state, dyn.replace(radio_range=jnp.float32(rho))).mask
         np.testing.assert_array_equal(np.asarray(far), offered if on else np.asarray(obs.mask))
+    # With radio.sector_split = area (dyn.sector_area, traced: the same compilation) the
+    # cuts move from 30 and 60 degrees to 33.69 and 56.31 (the corner pad's thirds).
+    by_area = np.asarray(jax.jit(in_sectors)(obs, state, dyn.with_values(sector_area=1.0)).mask)
+    assert np.any(by_area != offered)
     position = np.asarray(state.candidates.position, np.float64)
     azimuth = np.degrees(np.arctan2(position[..., 1], position[..., 0]))  # pad 0 at (0, 0)
     gain = np.asarray(obs.features)[..., FEATURES.index("view_unknown")] > 0
     mask = np.asarray(obs.mask)
-    restricted = 0
-    for robot in range(3):
-        mine = (azimuth >= 30 * robot) & ((azimuth < 30 * (robot + 1)) | (robot == 2))
-        useful = mask[robot] & mine[robot] & gain[robot]
-        expected = useful if useful.any() else mask[robot]
-        np.testing.assert_array_equal(offered[robot], expected)
-        restricted += int(useful.any() and useful.sum() < mask[robot].sum())
-    assert restricted > 0
+    for got, cuts in [(offered, [0, 30, 60, 90]),
+                      (by_area, [0, math.degrees(math.atan(2 / 3)),
+                                 math.degrees(math.atan(3 / 2)), 90])]:
+        restricted = 0
+        for robot in range(3):
+            mine = (azimuth >= cuts[robot]) & ((azimuth < cuts[robot + 1]) | (robot == 2))
+            useful = mask[robot] & mine[robot] & gain[robot]
+            expected = useful if useful.any() else mask[robot]
+            np.testing.assert_array_equal(got[robot], expected)
+            restricted += int(useful.any() and useful.sum() < mask[robot].sum())
+        assert restricted > 0
     # Every planner of a sweep with eval.sectors (here random) chooses among those only.
     memory = jnp.zeros((3, 1))
     for planner, inside in [(random_planner(), False), (deployed(random_planner(), True), True)]:

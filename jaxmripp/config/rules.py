@@ -12,6 +12,7 @@ from typing import Any
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
 from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
+from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -116,6 +117,7 @@ RULES: dict[str, tuple] = {
     "ppo.teacher_updates": _NONNEG,
     "ppo.teacher": _choice("nbv", "nbv_ahead", "oracle"),
     "ppo.teacher_facade": _NONNEG,
+    "radio.sector_split": _choice(*SECTOR_SPLITS),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),

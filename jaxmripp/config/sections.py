@@ -72,6 +72,9 @@ class RadioConfig:
     relay: bool = False  # forward everything known (multi-hop) instead of single hop
     share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
     collision_distance: float = 0.05  # d_c
+    # how eval.sectors / train.sectors divide the world: angle (equal azimuth spans) or
+    # area (equal ground areas; jaxmripp.spec.sectors)
+    sector_split: str = "angle"
 
 
 @dataclasses.dataclass(frozen=True)

@@ -13,6 +13,7 @@ from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
 from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import features
+from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
 from jaxmripp.spec.view import FACADE_TOPS
 
 @dataclasses.dataclass(frozen=True)
@@ -68,6 +69,7 @@ class RuntimeSpec:
     # sensor.gain_facade; jaxmripp.spec.view).
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
+    sector_split: str = "angle"  # radio.sector_split (jaxmripp.spec.sectors)
 
     @property
     def gain(self) -> GainModel:
@@ -139,6 +141,7 @@ class RuntimeSpec:
             relay=get("radio", "relay", bool),
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
+            sector_split=choice("radio", "sector_split", SECTOR_SPLITS, default="angle"),
             gp=GPSpec(**{name: get("gp", name, kind) for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
             max_steps=get("episode", "max_steps", int),

@@ -102,6 +102,8 @@ class DynamicParams:
     turn_cost:          ()   budget charged when a move changes the heading
     start:              (3,) the first take-off pad
     pad_spacing:        ()   the distance between take-off pads (jaxmripp.spec.flight)
+    sector_area:        ()   1: the sector rule splits the world into equal areas
+                             (radio.sector_split = area), 0: into equal azimuth spans
     alpha, beta, gamma: ()   reward weights of r_e (utility GP trace drop), r_u (new
                              windows) and r_c (communication GP trace drop)
     utility_norm:       ()   windows seen per pose are divided by it before entering a GP
@@ -113,6 +115,7 @@ class DynamicParams:
     turn_cost: jax.Array
     start: jax.Array
     pad_spacing: jax.Array
+    sector_area: jax.Array
     alpha: jax.Array
     beta: jax.Array
     gamma: jax.Array
@@ -128,7 +131,8 @@ class DynamicParams:
         return cls.create(
             radio_range=cfg.radio.range, collision_distance=cfg.radio.collision_distance,
             budget=cfg.robots.budget, turn_cost=cfg.robots.turn_cost, start=cfg.robots.start,
-            pad_spacing=cfg.robots.pad_spacing, alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
+            pad_spacing=cfg.robots.pad_spacing, sector_area=cfg.radio.sector_split == "area",
+            alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
             utility_norm=cfg.reward.utility_norm)
 
     def with_values(self, **values) -> "DynamicParams":

@@ -4,8 +4,15 @@ Seen from the first take-off pad `start` (on the world's boundary, as the pads a
 `jaxmripp.spec.flight`), the ground azimuths of the unit square, measured from the
 direction to its centre, span [lo, hi] (the extremes over its four corners; a quarter
 turn from a corner, a half turn from the middle of an edge). Robot i of a team of N owns
-the sector of azimuths [lo + i (hi - lo) / N, lo + (i + 1) (hi - lo) / N), the last one
-closed. A robot is offered only the candidates in its own sector that have unknown
+the i-th of N sectors, split at N - 1 boundary azimuths b_1 < ... < b_{N-1}: a candidate
+whose azimuth a has b_k <= a for exactly i of them is robot i's (so the first sector is
+closed below, the last above). With `radio.sector_split = angle` the boundaries divide
+[lo, hi] evenly, b_k = lo + k (hi - lo) / N; from a corner the sectors along the diagonal
+then cover about twice the ground of those along the edges. With `area` each sector covers
+1/N of the square: the fan from the pad through the corners, in azimuth order, is cut
+where its cumulative area reaches k / N (the area up to a point on the square's boundary
+grows linearly along each edge, so each cut is found within one triangle of the fan).
+A robot is offered only the candidates in its own sector that have unknown
 voxels in view (view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its
 sector offers none, its whole mask. Robots that rarely hear each other (a short radio
 range) thus still look at different parts of the world until their own part is seen.
@@ -24,6 +31,7 @@ from jaxmripp.spec.layout import FEATURES
 
 GAIN_COLUMN = FEATURES.index("view_unknown")
 WHOLE_WORLD_RANGE = float(np.sqrt(3.0))  # the unit cube's diagonal
+SPLITS = ("angle", "area")  # radio.sector_split
 
 
 def applies(radio_range):
@@ -31,9 +39,10 @@ def applies(radio_range):
     return radio_range < WHOLE_WORLD_RANGE
 
 
-def own_sector(position, start, robot, team: int, xp=np):
+def own_sector(position, start, robot, team: int, xp=np, equal_area=False):
     """Candidate positions (..., 3), the first pad (3,), robot index (broadcasts against
-    the leading axes) -> (...,) bool: the candidate lies in the robot's sector."""
+    the leading axes) -> (...,) bool: the candidate lies in the robot's sector.
+    `equal_area` (a bool, or a traced one in JAX): the `area` split, else `angle`."""
     # Azimuths are measured from the direction to the square's centre, so the span of a
     # pad on any edge is one interval within (-pi, pi] (from the y = 1 edge it would
     # straddle the +-pi cut).
@@ -51,8 +60,25 @@ def own_sector(position, start, robot, team: int, xp=np):
     hi = xp.max(xp.where(away, corner_azimuth, -xp.inf))
     azimuth = azimuth_of(position[..., 0] - start[0], position[..., 1] - start[1])
     share = xp.floor((azimuth - lo) / (hi - lo) * team)
-    sector = xp.clip(share, 0, team - 1)
-    return sector == robot
+    by_angle = xp.clip(share, 0, team - 1)
+    bounds = _equal_area_bounds(offset, away, corner_azimuth, team, xp, azimuth_of)
+    by_area = xp.sum(azimuth[..., None] >= bounds, axis=-1)
+    return xp.where(equal_area, by_area, by_angle) == robot
+
+
+def _equal_area_bounds(offset, away, corner_azimuth, team: int, xp, azimuth_of):
+    """(team - 1,) azimuths that cut the square into `team` sectors of equal area, from
+    the corners' offsets from the pad (4, 2)."""
+    # The corners in azimuth order; one at the pad goes last, and its zero offset gives
+    # the triangles it bounds no area.
+    fan = offset[xp.argsort(xp.where(away, corner_azimuth, xp.inf))]
+    side = 0.5 * xp.abs(fan[:-1, 0] * fan[1:, 1] - fan[:-1, 1] * fan[1:, 0])  # (3,)
+    reached = xp.concatenate([xp.zeros(1, side.dtype), xp.cumsum(side)])  # (4,)
+    target = reached[-1] * xp.arange(1, team, dtype=side.dtype) / team
+    tri = xp.minimum(xp.sum(reached[None, 1:3] <= target[:, None], axis=-1), 2)
+    along = (target - reached[tri]) / xp.maximum(side[tri], 1e-12)
+    cut = fan[tri] + along[:, None] * (fan[tri + 1] - fan[tri])
+    return azimuth_of(cut[:, 0], cut[:, 1])
 
 
 def sector_mask(mask, features, own):
