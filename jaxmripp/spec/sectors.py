@@ -12,9 +12,9 @@ then cover about twice the ground of those along the edges. With `area` each sec
 1/N of the square: the fan from the pad through the corners, in azimuth order, is cut
 where its cumulative area reaches k / N (the area up to a point on the square's boundary
 grows linearly along each edge, so each cut is found within one triangle of the fan).
-A robot is offered only the candidates in its own sector that have unknown
-voxels in view (view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its
-sector offers none, its whole mask. Robots that rarely hear each other (a short radio
+A robot is offered only the candidates in its own sector that have unknown voxels in view
+(view_unknown > 0, `jaxmripp.spec.layout`) while it has any; once its sector offers none,
+its whole mask. Robots that rarely hear each other (a short radio
 range) thus still look at different parts of the world until their own part is seen.
 The rule applies only to a radio range shorter than the unit cube's diagonal: a radio
 that reaches across the whole world connects the team wherever it flies, and the robots
