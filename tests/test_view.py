@@ -78,7 +78,8 @@ def test_unknown_world_is_all_gain_and_a_wall_ahead_hides_what_is_behind_it():
     # them in front of the voxel, heading 2 (-x) looks away.
     assert facade[0, 0] > 0 and facade[0, 2] == 0
     np.testing.assert_allclose(np.stack([unknown, facade], -1),
-                               reference_gains(occupancy, np.asarray(top), position, SENSOR), atol=1e-6)
+                               reference_gains(occupancy, np.asarray(top), position, SENSOR),
+                               atol=1e-6)
 
 
 def test_a_sensor_that_sees_through_buildings_gains_behind_a_known_wall():

@@ -244,7 +244,8 @@ def _teacher(cfg: Config, params: EnvParams):
     e = cfg.eval
     if cfg.ppo.teacher == "oracle":
         def windows_first(key, obs, state, dyn):
-            # Among views that reveal as many windows, the one nbv_team would take.
+            # Among views that reveal as many windows, the one the next-best-view score
+            # (with the teacher's facade weight) prefers.
             score = layout.nbv_score(obs.features, cfg.ppo.teacher_facade)
             scale = jnp.max(jnp.where(obs.mask, jnp.abs(score), 0.0), axis=-1, keepdims=True)
             tie = 0.4 * score / jnp.maximum(scale, 1e-6)
