@@ -19,7 +19,7 @@ train: $(STAMP)
 	$(BIN)/python train.py --config configs/default.yaml
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile
+	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile --no-loadscope-reorder
 
 # One mission of simulated quadrotors flown by the shipped policy (about a minute):
 # runs/flight/result.json, paths.png (3D) and flight.gif.

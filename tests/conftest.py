@@ -24,7 +24,8 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 
 # Files whose compilations take longest, started first: `make test` hands whole files to two
-# workers in collection order, so a long file collected last would run alone at the end.
+# workers in collection order (--no-loadscope-reorder: xdist would otherwise start with the
+# files of most tests), so a long file collected last would run alone at the end.
 LONGEST_FIRST = ("test_train.py", "test_env.py", "test_evaluate.py", "test_runtime_episode.py",
                  "test_runtime_parity.py", "test_pipeline.py", "test_export.py", "test_rig.py")
 
