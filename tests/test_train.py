@@ -266,9 +266,11 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
 
 
-# nbv_ahead's two-flight search compiles into the rollout for over a minute: make test keeps
-# the oracle, which stores its choices the same way (the search itself: test_lookahead.py).
-@pytest.mark.parametrize("teacher", [pytest.param("nbv_ahead", marks=pytest.mark.slow), "oracle"])
+# Either planner compiles into the rollout for one to two minutes: make test keeps the
+# oracle's choices (the next test), the search (test_lookahead.py) and the loss on stored
+# choices (test_kickstarting_...).
+@pytest.mark.slow
+@pytest.mark.parametrize("teacher", ["nbv_ahead", "oracle"])
 def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teacher):
     """ppo.teacher = nbv_ahead or oracle: the transitions carry that planner's choices,
     feasible on the observations, and some differ from the one-step NBV choice; with the
@@ -334,7 +336,6 @@ def _final_params(cfg, run_dir):
     return state.params
 
 
-@pytest.mark.slow  # two processes of one device each below split the batch the same way
 def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full_run,
                                                                         tmp_path):
     """Updates 2 and 3 on 2 devices, resumed from the 1-device run's first checkpoint."""
@@ -352,6 +353,9 @@ def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full
     assert _leaves_equal(_final_params(cfg, run_dir), full_run[1].params)
 
 
+# Two processes compile the chunk at once, both cores for over a minute: make test keeps the
+# 2-device split above (one process) and the launch's check-in (test_parallel.py).
+@pytest.mark.slow
 def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     results = run_local(_smoke_command(tmp_path), processes=2, timeout_s=300)
     for result in results:
