@@ -336,6 +336,7 @@ def _final_params(cfg, run_dir):
     return state.params
 
 
+@pytest.mark.slow  # a training compilation for 2 devices in a process of its own
 def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full_run,
                                                                         tmp_path):
     """Updates 2 and 3 on 2 devices, resumed from the 1-device run's first checkpoint."""
@@ -353,8 +354,8 @@ def test_two_local_devices_continue_a_one_device_run_to_its_parameters(cfg, full
     assert _leaves_equal(_final_params(cfg, run_dir), full_run[1].params)
 
 
-# Two processes compile the chunk at once, both cores for over a minute: make test keeps the
-# 2-device split above (one process) and the launch's check-in (test_parallel.py).
+# Two processes compile the chunk at once, both cores for over a minute (make test keeps the
+# launch's check-in: test_parallel.py).
 @pytest.mark.slow
 def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     results = run_local(_smoke_command(tmp_path), processes=2, timeout_s=300)
@@ -366,6 +367,7 @@ def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     assert _leaves_equal(_final_params(cfg, tmp_path / cfg.train.name), full_run[1].params)
 
 
+@pytest.mark.slow  # two more rollout compilations (with and without sectors)
 def test_training_chunks_cycle_through_the_radio_ranges_and_rollouts_keep_to_sectors():
     """train.radio_ranges: chunk i trains at range i mod their count. train.sectors: at a
     short range every robot samples from the sector rule's mask (offering nothing outside
