@@ -59,11 +59,11 @@ def own_sector(position, start, robot, team: int, xp=np, equal_area=False):
     lo = xp.min(xp.where(away, corner_azimuth, xp.inf))
     hi = xp.max(xp.where(away, corner_azimuth, -xp.inf))
     azimuth = azimuth_of(position[..., 0] - start[0], position[..., 1] - start[1])
-    share = xp.floor((azimuth - lo) / (hi - lo) * team)
-    by_angle = xp.clip(share, 0, team - 1)
-    bounds = _equal_area_bounds(offset, away, corner_azimuth, team, xp, azimuth_of)
-    by_area = xp.sum(azimuth[..., None] >= bounds, axis=-1)
-    return xp.where(equal_area, by_area, by_angle) == robot
+    even = lo + (hi - lo) * xp.arange(1, team, dtype=lo.dtype) / team
+    bounds = xp.where(equal_area,
+                      _equal_area_bounds(offset, away, corner_azimuth, team, xp, azimuth_of),
+                      even)
+    return xp.sum(azimuth[..., None] >= bounds, axis=-1) == robot
 
 
 def _equal_area_bounds(offset, away, corner_azimuth, team: int, xp, azimuth_of):
