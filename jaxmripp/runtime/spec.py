@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 from typing import Any, Mapping
 
 from jaxmripp.runtime.errors import WeightsFormatError
@@ -15,6 +16,7 @@ from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import features
 from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
 from jaxmripp.spec.view import FACADE_TOPS
+
 
 @dataclasses.dataclass(frozen=True)
 class GPSpec:
@@ -27,8 +29,7 @@ class GPSpec:
     eval_grid: int
 
 
-_GP_FIELDS = {"capacity": int, "length_scale": float, "heading_scale": float,
-              "variance": float, "noise": float, "catchup_rounds": int, "eval_grid": int}
+_GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
 
 
 @dataclasses.dataclass(frozen=True)
