@@ -26,8 +26,8 @@ Usage (from the repository root):
     python benchmarks/ablation.py [--preset default|paper] [--seeds 2] [--updates U]
         [--variants full,no_comm,...] [--worlds 25] [--trials 10] [--runs runs/ablation]
         [--out docs/results/ablation_default.md]
-Preset `default` trains configs/default.yaml (the `make train` job) and evaluates with
-configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml without its
+Preset `default` trains configs/default.yaml (the `make train` job) without its
+kickstarting teacher (ppo.teacher_coef=0) and evaluates with configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml without its
 kickstarting teacher (ppo.teacher_coef=0) and with the default view gain
 (sensor.gain_occlusion=true, sensor.gain_facade=nearby) for --updates (default 60) and
 evaluates with configs/eval_paper_world.yaml and that gain.
@@ -67,7 +67,8 @@ TRAINING_SECTIONS = ("policy", "reward", "ppo", "train")
 # learns from each input, so no kickstarting teacher pulls them toward the next-best-view
 # rule; the paper preset keeps the default view gain its table was made with.
 PRESETS = {
-    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, ()),
+    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None,
+                ("ppo.teacher_coef=0",)),
     "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60,
               ("ppo.teacher_coef=0", "sensor.gain_occlusion=true", "sensor.gain_facade=nearby")),
 }

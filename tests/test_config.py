@@ -25,6 +25,32 @@ def test_presets_load_and_round_trip(name):
     hash(cfg)  # usable as a static jit argument
 
 
+SHIPPED = sorted((CONFIGS.parent / "pretrained").glob("*/metadata.json"))
+
+
+def _training_settings(cfg: Config) -> dict:
+    """Every setting that shapes a trained policy: all but the run's name, the run it
+    started from (a path on the machine that trained it) and the evaluation settings other
+    than the lookahead search's (the nbv_ahead teacher and input read those)."""
+    flat = {f"{section}.{key}": value
+            for section, fields in dataclasses.asdict(cfg).items() for key, value in fields.items()}
+    return {key: value for key, value in flat.items()
+            if key not in ("train.name", "train.init_from")
+            and (not key.startswith("eval.") or key.startswith("eval.nbv_ahead_"))}
+
+
+@pytest.mark.parametrize("metadata", SHIPPED, ids=lambda path: path.parent.name)
+def test_shipped_policies_are_what_their_commands_train(metadata):
+    # A preset that a shipped policy's command names must still train that policy: a
+    # change to a base preset (default.yaml) must not change what an older command means.
+    command = yaml.safe_load(metadata.read_text())["command"].split("&&")[-1].split()
+    assert command[:3] == ["python", "train.py", "--config"], command
+    path, overrides = command[3], command[4:]
+    trained = cfgmod.load(metadata.parent / "config.yaml")
+    assert _training_settings(cfgmod.load(CONFIGS.parent / path, overrides)) == \
+        _training_settings(trained)
+
+
 def test_infinite_radio_range_round_trips():
     cfg = cfgmod.load(None, ["radio.range=.inf", "eval.radio_ranges=[.inf, 0.1]"])
     assert cfg.radio.range == math.inf
