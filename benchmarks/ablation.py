@@ -26,11 +26,11 @@ Usage (from the repository root):
     python benchmarks/ablation.py [--preset default|paper] [--seeds 2] [--updates U]
         [--variants full,no_comm,...] [--worlds 25] [--trials 10] [--runs runs/ablation]
         [--out docs/results/ablation_default.md]
-Preset `default` trains configs/default.yaml (the `make train` job) without its
-kickstarting teacher (ppo.teacher_coef=0) and evaluates with configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml without its
-kickstarting teacher (ppo.teacher_coef=0) and with the default view gain
-(sensor.gain_occlusion=true, sensor.gain_facade=nearby) for --updates (default 60) and
-evaluates with configs/eval_paper_world.yaml and that gain.
+Preset `default` trains configs/default.yaml (the `make train` job) and evaluates with
+configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml with the default
+view gain (sensor.gain_occlusion=true, sensor.gain_facade=nearby) for --updates (default
+60) and evaluates with configs/eval_paper_world.yaml and that gain. Both train without
+their kickstarting teacher (ppo.teacher_coef=0).
 """
 
 from __future__ import annotations
