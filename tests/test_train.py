@@ -266,6 +266,12 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
 
 
+def _start_runner(cfg, trainer, dyn) -> ppo.Runner:
+    """The runners at reset, compiled: op by op the reset takes the better part of a minute."""
+    return jax.jit(lambda dyn: ppo.start_runner(jax.random.PRNGKey(0), cfg, trainer.env_params,
+                                                dyn))(dyn)
+
+
 # Either planner compiles into the rollout for one to two minutes: make test keeps the
 # oracle's choices (the next test), the search (test_lookahead.py) and the loss on stored
 # choices (test_kickstarting_...).
@@ -280,7 +286,7 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teach
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
     params = trainer.init().params
-    runner = ppo.start_runner(jax.random.PRNGKey(0), cfg, trainer.env_params, dyn)
+    runner = _start_runner(cfg, trainer, dyn)
     run = jax.jit(lambda weight: ppo.rollout(
         jax.random.PRNGKey(1), runner, params, trainer.network, cfg, trainer.env_params, dyn,
         teacher=ppo.Teacher(weight, cfg.ppo.teacher_facade))[1])
@@ -299,7 +305,7 @@ def test_the_oracle_teacher_takes_the_nbv_choice_once_every_window_is_found():
     cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=oracle"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
-    runner = ppo.start_runner(jax.random.PRNGKey(0), cfg, trainer.env_params, dyn)
+    runner = _start_runner(cfg, trainer, dyn)
     teach = jax.jit(jax.vmap(ppo._teacher(cfg, trainer.env_params),
                              in_axes=(0, 0, 0, None)))
     keys = jax.random.split(jax.random.PRNGKey(2), cfg.train.envs)
