@@ -33,7 +33,7 @@ def _training_settings(cfg: Config) -> dict:
     started from (a path on the machine that trained it) and the evaluation settings other
     than the lookahead search's (the nbv_ahead teacher and input read those)."""
     flat = {f"{section}.{key}": value
-            for section, fields in dataclasses.asdict(cfg).items() for key, value in fields.items()}
+            for section, fields in cfgmod.to_dict(cfg).items() for key, value in fields.items()}
     return {key: value for key, value in flat.items()
             if key not in ("train.name", "train.init_from")
             and (not key.startswith("eval.") or key.startswith("eval.nbv_ahead_"))}

@@ -5,9 +5,9 @@
 References are written from the spec's text: tops from a map's OCCUPIED voxels and the
 gain by walking each ray of the spec's table sample by sample (tests/gain_reference.py),
 the merge as a whole-map merge. The JAX implementations (`jaxmripp.sim.view`) are
-compared too, since the two sides must agree bit for bit. Whole episodes against the env (maps, tops and features every
-round, with the runtime's deltas) are in tests/test_runtime_episode.py and
-tests/test_runtime_parity.py.
+compared too, since the two sides must agree bit for bit. Whole episodes against the env
+(maps, tops and features every round, with the runtime's deltas) are in
+tests/test_runtime_episode.py and tests/test_runtime_parity.py.
 """
 
 from __future__ import annotations
