@@ -21,11 +21,13 @@ global communication (rho = inf: everyone hears everyone every step). Figures:
 
 With --grid (instead of the timing), the paper's scalability grid: every world size of
 --world-sizes (3x / 8x / 16x: G = 75 / 100 / 125, with the paper's rho = 0.2 / 0.15 /
-0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval,
-W worlds per cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std,
+0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval
+(--range-planners adds planners with single hop and relay beside the policy), W worlds per
+cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std,
 95% half-width) and, with --figure, % found against N per world size with std bands.
 Every cell's worlds follow from eval.seed and the world's index alone, so the grid can be
-split over runs (--world-sizes, --grid-teams, --exchanges, --global-planners), in
+split over runs (--world-sizes, --grid-teams, --exchanges, --global-planners,
+--range-planners), in
 parallel on one GPU too; --collected FILE prints the grid's tables from the lines
 collected in FILE (mean % found, std over the worlds, and per cell the policy with relay
 over the best planner with global communication, with their Welch p) and draws --figure.
@@ -35,7 +37,7 @@ Usage (from the repository root):
         [--eval --worlds W --policy pretrained/default] [--set key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
-        [--global-planners policy,coordinated,nbv_team]
+        [--global-planners policy,coordinated,nbv_team] [--range-planners policy,nbv_team]
     python benchmarks/scale.py --collected grid.jsonl [--figure docs/scale_grid.png]
 """
 
@@ -75,8 +77,11 @@ def main(argv=None) -> int:
     parser.add_argument("--figure", type=Path, default=None, help="--grid: the plot")
     parser.add_argument("--exchanges", default=",".join(EXCHANGES),
                         help="--grid: the exchanges to evaluate (a cell's pairs split over runs)")
-    parser.add_argument("--global-planners", default=",".join(GLOBAL_PLANNERS),
+    parser.add_argument("--global-planners", default=",".join(PLANNERS),
                         help="--grid: the planners evaluated with global communication")
+    parser.add_argument("--range-planners", default="policy",
+                        help="--grid: the planners evaluated with single hop and relay at "
+                             "the cell's radio range")
     parser.add_argument("--collected", type=Path, default=None,
                         help="print the tables (and draw --figure) from the scale.grid.* "
                              "JSON lines of this file, collected from --grid runs")
@@ -97,9 +102,11 @@ def main(argv=None) -> int:
         return 0
     if args.grid:
         exchanges = args.exchanges.split(",")
-        planners = args.global_planners.split(",") if "global" in exchanges else []
+        global_planners = args.global_planners.split(",") if "global" in exchanges else []
+        range_planners = args.range_planners.split(",")
         for flag, given, allowed in (("--exchanges", exchanges, EXCHANGES),
-                                     ("--global-planners", planners, GLOBAL_PLANNERS)):
+                                     ("--global-planners", global_planners, PLANNERS),
+                                     ("--range-planners", range_planners, PLANNERS)):
             if not set(given) <= set(allowed):
                 print(f"error: {flag} {sorted(set(given) - set(allowed))}: allowed "
                       f"{', '.join(allowed)}", file=sys.stderr)
@@ -111,7 +118,8 @@ def main(argv=None) -> int:
                   "worlds, each with its radio range)", file=sys.stderr)
             return 2
         evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
-                      args.worlds, args.set, args.figure, exchanges, planners)
+                      args.worlds, args.set, args.figure, exchanges, global_planners,
+                      range_planners)
         return 0
     teams = sorted(int(n) for n in args.teams.split(","))
     micros = {}
@@ -142,20 +150,19 @@ def main(argv=None) -> int:
 
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
 EXCHANGES = ("global", "single_hop", "relay")
-GLOBAL_PLANNERS = ("policy", "coordinated", "nbv_team")
-# (planner, exchange) pairs of a cell, in the tables' order: single hop and relay are the
-# policy's alone
-PAIRS = (("policy", "single_hop"), ("policy", "relay"),
-         *((planner, "global") for planner in GLOBAL_PLANNERS))
+PLANNERS = ("policy", "coordinated", "nbv_team")
+# (planner, exchange) pairs in the tables' order: by planner, then by how far news travels
+PAIRS = tuple((planner, exchange) for planner in PLANNERS
+              for exchange in ("single_hop", "relay", "global"))
 
 
 def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
                     worlds: int, overrides: list[str], exchanges=EXCHANGES,
-                    global_planners=GLOBAL_PLANNERS) -> dict:
-    """The policy with single-hop exchange and with relay at radio_range, and the policy,
-    coordinated and nbv_team with global communication (or the `exchanges` and
-    `global_planners` named), on the same held-out worlds for every team size
-    -> {(planner, exchange, n): % found per world}."""
+                    global_planners=PLANNERS, range_planners=("policy",)) -> dict:
+    """The `range_planners` (the policy) with single-hop exchange and with relay at
+    radio_range, and the `global_planners` (policy, coordinated and nbv_team) with global
+    communication, for the `exchanges` named, on the same held-out worlds for every team
+    size -> {(planner, exchange, n): % found per world}."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
@@ -165,8 +172,8 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
             "eval.pairs=[]", "eval.zip_with_size=[]", *overrides]
     # exchange -> (radio range, relay, planners)
     settings_of = {"global": (".inf", "false", global_planners),
-                   "single_hop": (radio_range, "false", ("policy",)),
-                   "relay": (radio_range, "true", ("policy",))}
+                   "single_hop": (radio_range, "false", range_planners),
+                   "relay": (radio_range, "true", range_planners)}
     found = {}
     for exchange in exchanges:
         rho, relay, planners = settings_of[exchange]
@@ -202,13 +209,13 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
 
 def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                   overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
-                  global_planners=GLOBAL_PLANNERS) -> None:
+                  global_planners=PLANNERS, range_planners=("policy",)) -> None:
     from jaxmripp.evaluation import stats  # noqa: PLC0415
 
     grid = {}
     for size in sizes:
         found = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides,
-                                exchanges, global_planners)
+                                exchanges, global_planners, range_planners)
         for (planner, exchange, n), discovered in sorted(found.items()):
             mean, std, half = stats.mean_ci(discovered)
             grid[planner, exchange, size, n] = (mean, std, worlds)
@@ -235,13 +242,18 @@ def read_grid(path: Path) -> dict:
     return grid
 
 
+def pairs_in(grid: dict) -> list[tuple[str, str]]:
+    """The (planner, exchange) pairs with a figure in some cell of the grid, in PAIRS order."""
+    return [pair for pair in PAIRS if any(key[:2] == pair for key in grid)]
+
+
 def grid_tables(grid: dict, sizes: list[int]) -> str:
     """One markdown table per world size: planner-exchange rows, team-size columns, mean %
     found (std; "-" where a cell has no figure), then the policy with relay over the best
     planner with global communication, with the Welch p of the two (from means and stds)."""
     from scipy import stats  # noqa: PLC0415
 
-    rows = [pair for pair in PAIRS if any(k[:2] == pair for k in grid)]
+    rows = pairs_in(grid)
 
     def relay_vs_best_global(size: int, n: int) -> str:
         relay = grid.get(("policy", "relay", size, n))
@@ -269,22 +281,26 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
 
 
 def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
-    """% found against team size, one panel per world size, std bands."""
+    """% found against team size, one panel per world size, std bands; a colour per
+    planner, a line style per exchange."""
     import matplotlib  # noqa: PLC0415
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
     fig, axes = plt.subplots(1, len(sizes), figsize=(4.2 * len(sizes), 3.6), squeeze=False)
-    lines = sorted({(planner, exchange) for planner, exchange, _, _ in grid})
+    colour = {planner: f"C{i}" for i, planner in enumerate(PLANNERS)}
+    style = {"single_hop": ":", "relay": "--", "global": "-"}
     for ax, size in zip(axes[0], sizes):
-        for planner, exchange in lines:
+        for planner, exchange in pairs_in(grid):
             ns = sorted(n for p, e, g, n in grid if (p, e, g) == (planner, exchange, size))
             mean = [grid[planner, exchange, size, n][0] for n in ns]
             std = [grid[planner, exchange, size, n][1] for n in ns]
-            ax.plot(ns, mean, marker="o", label=f"{planner}, {exchange.replace('_', ' ')}")
+            ax.plot(ns, mean, marker="o", color=colour[planner], linestyle=style[exchange],
+                    label=f"{planner}, {exchange.replace('_', ' ')}")
             ax.fill_between(ns, [m - s for m, s in zip(mean, std)],
-                            [m + s for m, s in zip(mean, std)], alpha=0.15)
+                            [m + s for m, s in zip(mean, std)], color=colour[planner],
+                            alpha=0.12)
         ratio = round((size / config.REFERENCE_SIZE) ** 3)
         ax.set(title=f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})",
                xlabel="robots N", ylabel="% windows found", ylim=(0, 100))

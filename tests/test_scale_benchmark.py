@@ -25,6 +25,7 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
              "not a JSON line",
              json.dumps({"name": "scale.relay_vs_best_global_16x", "value": 0.9}),
              line("nbv_team.global.g125.n64", 97.97, 0.58),
+             line("nbv_team.relay.g125.n16", 80.0, 1.0),  # not the policy's: no ratio
              line("policy.relay.g125.n16", 68.96, 3.15),  # a later run of the same cell wins
              line("policy.global.g75.n32", 92.1, 2.04),
              line("policy.global.g125.n16", 74.21, 2.39)]
@@ -38,19 +39,21 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
     g125 = out.index("16x world (G = 125, rho = 0.12):")
     assert out[g75 + 2] == "| planner, exchange | N = 32 |"
     # every table has the same rows: those with a figure in some world, in a fixed order
-    assert out[g75 + 4:g75 + 6] == ["| policy, relay | - |", "| policy, global | 92.10 (2.04) |"]
+    assert out[g75 + 4:g75 + 8] == ["| policy, relay | - |", "| policy, global | 92.10 (2.04) |",
+                                    "| nbv_team, relay | - |", "| nbv_team, global | - |"]
     assert out[g125 + 2] == "| planner, exchange | N = 16 | N = 64 |"
     # "-" where a cell has no figure
-    assert out[g125 + 4:g125 + 7] == ["| policy, relay | 68.96 (3.15) | - |",
+    assert out[g125 + 4:g125 + 8] == ["| policy, relay | 68.96 (3.15) | - |",
                                       "| policy, global | 74.21 (2.39) | - |",
+                                      "| nbv_team, relay | 80.00 (1.00) | - |",
                                       "| nbv_team, global | - | 97.97 (0.58) |"]
     # Welch's test by hand: t = -13.29 on 184.6 degrees of freedom
     va, vb = 3.15**2 / 100, 2.39**2 / 100
     t = (68.96 - 74.21) / math.sqrt(va + vb)
     df = (va + vb) ** 2 / (va**2 / 99 + vb**2 / 99)
     p = 2 * stats.t.sf(abs(t), df)
-    assert out[g125 + 7] == f"| relay / best global | {68.96 / 74.21:.3f} (p {p:.1g}) | - |"
-    assert out[g75 + 7] == "| relay / best global | - |"
+    assert out[g125 + 8] == f"| relay / best global | {68.96 / 74.21:.3f} (p {p:.1g}) | - |"
+    assert out[g75 + 8] == "| relay / best global | - |"
     assert figure.stat().st_size > 0
 
 
@@ -60,3 +63,12 @@ def test_no_grid_lines_is_an_error(tmp_path):
     done = collected(path)
     assert done.returncode == 2
     assert "no file with scale.grid.<planner>.<exchange>.g<G>.n<N> lines" in done.stderr
+
+
+def test_a_planner_outside_the_allowed_is_an_error():
+    done = subprocess.run([sys.executable, str(SCRIPT), "--grid", "--policy",
+                           str(SCRIPT.parents[1] / "pretrained" / "scale"),
+                           "--range-planners", "policy,oracle"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--range-planners ['oracle']: allowed policy, coordinated, nbv_team" in done.stderr
