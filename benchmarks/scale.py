@@ -305,7 +305,7 @@ def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
         ax.set(title=f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})",
                xlabel="robots N", ylabel="% windows found", ylim=(0, 100))
         ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="lower right")
+    axes[0][0].legend(fontsize=7, loc="lower right", handlelength=3.5)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
