@@ -23,12 +23,11 @@ With --grid (instead of the timing), the paper's scalability grid: every world s
 --world-sizes (3x / 8x / 16x: G = 75 / 100 / 125, with the paper's rho = 0.2 / 0.15 /
 0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval
 (--range-planners adds planners with single hop and relay beside the policy), W worlds per
-cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std,
-95% half-width) and, with --figure, % found against N per world size with std bands.
-Every cell's worlds follow from eval.seed and the world's index alone, so the grid can be
-split over runs (--world-sizes, --grid-teams, --exchanges, --global-planners,
---range-planners), in
-parallel on one GPU too; --collected FILE prints the grid's tables from the lines
+cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std, 95%
+half-width) and, with --figure, % found against N per world size with std bands. Every
+cell's worlds follow from eval.seed and the world's index alone, so the grid can be split
+over runs (--world-sizes, --grid-teams, --exchanges, --global-planners, --range-planners),
+in parallel on one GPU too; --collected FILE prints the grid's tables from the lines
 collected in FILE (mean % found, std over the worlds, and per cell the policy with relay
 over the best planner with global communication, with their Welch p) and draws --figure.
 
