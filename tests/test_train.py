@@ -165,20 +165,27 @@ def test_ppo_loss_falls_on_a_fixed_batch(algo):
     trainer = trainmod.Trainer.build(cfg)
     state = trainer.init()
     steps, envs, robots = 4, cfg.train.envs, cfg.robots.count
-    key_obs, key_act, key_reward = jax.random.split(jax.random.PRNGKey(0), 3)
-    obs = _random_observations(key_obs, trainer, (steps, envs, robots))
-    memory = jnp.zeros((steps, envs, robots, cfg.policy.width))
-    _, logits, value = ppo.apply_batched(trainer.network, state.params, memory, obs)
-    dist = ppo.distribution(logits, obs.mask)
-    action = dist.sample(seed=key_act)
-    batch = ppo.Transition(obs=obs, memory=memory, action=action,
-                           log_prob=dist.log_prob(action), value=value,
-                           reward=jax.random.normal(key_reward, value.shape),
-                           terminal=jnp.zeros(value.shape, bool).at[-1].set(True),
-                           active=jnp.ones(value.shape, bool))
-    last_value = jnp.zeros(batch.reward.shape[1:])
-    advantages, targets = ppo.gae(batch, last_value, cfg.ppo.discount, cfg.ppo.gae_lambda)
-    moments = ppo.advantage_moments(batch.active.astype(jnp.float32), advantages, blocks=0)
+
+    @jax.jit  # one compilation for the batch's many small ops (op by op they took seconds)
+    def fixed_batch(params, key):
+        key_obs, key_act, key_reward = jax.random.split(key, 3)
+        obs = _random_observations(key_obs, trainer, (steps, envs, robots))
+        memory = jnp.zeros((steps, envs, robots, cfg.policy.width))
+        _, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
+        dist = ppo.distribution(logits, obs.mask)
+        action = dist.sample(seed=key_act)
+        batch = ppo.Transition(obs=obs, memory=memory, action=action,
+                               log_prob=dist.log_prob(action), value=value,
+                               reward=jax.random.normal(key_reward, value.shape),
+                               terminal=jnp.zeros(value.shape, bool).at[-1].set(True),
+                               active=jnp.ones(value.shape, bool))
+        last_value = jnp.zeros(batch.reward.shape[1:])
+        advantages, targets = ppo.gae(batch, last_value, cfg.ppo.discount, cfg.ppo.gae_lambda)
+        moments = ppo.advantage_moments(batch.active.astype(jnp.float32), advantages, blocks=0)
+        return batch, last_value, advantages, targets, moments
+
+    batch, last_value, advantages, targets, moments = fixed_batch(state.params,
+                                                                  jax.random.PRNGKey(0))
     loss = jax.jit(lambda p: ppo.loss_fn(p, trainer.network, batch, advantages, targets,
                                          moments, cfg.ppo)[0])
     update = jax.jit(lambda key, params, opt: ppo.update(
