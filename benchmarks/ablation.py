@@ -62,15 +62,16 @@ VARIANTS = {
 # Sections that only shape training; an override elsewhere changes the environment, so the
 # variant is evaluated with it too.
 TRAINING_SECTIONS = ("policy", "reward", "ppo", "train")
+# The variants compare what PPO learns from each input, so no kickstarting teacher pulls
+# them toward the next-best-view rule, whatever the preset.
+NO_TEACHER = ("ppo.teacher_coef=0",)
 # preset: (training config, evaluation config, default number of updates, overrides; those
-# outside the training sections apply to the evaluation too). The variants compare what PPO
-# learns from each input, so no kickstarting teacher pulls them toward the next-best-view
-# rule; the paper preset keeps the default view gain its table was made with.
+# outside the training sections apply to the evaluation too). The paper preset keeps the
+# default view gain its table was made with.
 PRESETS = {
-    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None,
-                ("ppo.teacher_coef=0",)),
+    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, ()),
     "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60,
-              ("ppo.teacher_coef=0", "sensor.gain_occlusion=true", "sensor.gain_facade=nearby")),
+              ("sensor.gain_occlusion=true", "sensor.gain_facade=nearby")),
 }
 # Every variant is evaluated under the paper's rules at short range (no sectors, no parting
 # after meeting out of range), which the Table I configurations turn on.
@@ -121,7 +122,8 @@ def main(argv=None) -> int:
     args = parse_args(argv)
     train_path, eval_path, preset_updates, preset_overrides = PRESETS[args.preset]
     updates = args.updates or preset_updates
-    common = [*preset_overrides, *([f"train.updates={updates}"] if updates else [])]
+    common = [*NO_TEACHER, *preset_overrides,
+              *([f"train.updates={updates}"] if updates else [])]
     try:
         runs = {(variant, seed): cfgmod.load(train_path, [
             *common, *VARIANTS[variant], f"train.seed={seed}",

@@ -78,7 +78,7 @@ def main(argv=None) -> int:
                         help="--grid: the exchanges to evaluate (a cell's pairs split over runs)")
     parser.add_argument("--global-planners", default=",".join(PLANNERS),
                         help="--grid: the planners evaluated with global communication")
-    parser.add_argument("--range-planners", default="policy",
+    parser.add_argument("--range-planners", default=",".join(RANGE_PLANNERS),
                         help="--grid: the planners evaluated with single hop and relay at "
                              "the cell's radio range")
     parser.add_argument("--collected", type=Path, default=None,
@@ -150,6 +150,7 @@ def main(argv=None) -> int:
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
 EXCHANGES = ("global", "single_hop", "relay")
 PLANNERS = ("policy", "coordinated", "nbv_team")
+RANGE_PLANNERS = ("policy",)  # those evaluated at the short range unless --range-planners
 # (planner, exchange) pairs in the tables' order: by planner, then by how far news travels
 PAIRS = tuple((planner, exchange) for planner in PLANNERS
               for exchange in ("single_hop", "relay", "global"))
@@ -157,7 +158,7 @@ PAIRS = tuple((planner, exchange) for planner in PLANNERS
 
 def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
                     worlds: int, overrides: list[str], exchanges=EXCHANGES,
-                    global_planners=PLANNERS, range_planners=("policy",)) -> dict:
+                    global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> dict:
     """The `range_planners` (the policy) with single-hop exchange and with relay at
     radio_range, and the `global_planners` (policy, coordinated and nbv_team) with global
     communication, for the `exchanges` named, on the same held-out worlds for every team
@@ -208,7 +209,7 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
 
 def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                   overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
-                  global_planners=PLANNERS, range_planners=("policy",)) -> None:
+                  global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> None:
     from jaxmripp.evaluation import stats  # noqa: PLC0415
 
     grid = {}
