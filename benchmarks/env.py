@@ -35,7 +35,7 @@ import jax.numpy as jnp  # noqa: E402
 from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, sensing, view  # noqa: E402
-from jaxmripp.sim import candidates as cands  # noqa: E402
+from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
@@ -104,12 +104,7 @@ def main() -> None:
         return predict(ugp, poses, p.gp), predict(s.comm_gp, poses, p.gp)
 
     def candidates_part(s, key, d):
-        k = jax.random.split(key, n)
-        contact = comms.contacts(s.position, d.radio_range)
-        return jax.vmap(cands.sample,
-                        in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
-            k, s.position, s.heading, s.budget_left, s.occupancy, s.position, contact,
-            p.candidates, p.safety.flight, d.turn_cost, d.collision_distance, p.size)
+        return envmod.team_candidates(key, s, comms.contacts(s.position, d.radio_range), p, d)
 
     def view_gain_part(s):
         return jax.vmap(view.view_gain, in_axes=(0, 0, 0, None, None))(

@@ -208,13 +208,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
                               contacts=state.metrics.contacts + contact.sum() // 2))
     state, reward_exploration, reward_communication = feed_gps(state, params)
 
-    keys = jax.random.split(key, n)
-    others_known = contact  # robots within radio range are the ones whose positions we know
-    new_candidates = jax.vmap(
-        cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
-        keys, state.position, state.heading, state.budget_left, state.occupancy,
-        state.position, others_known, params.candidates, params.safety, dyn.turn_cost,
-        dyn.collision_distance, size)
+    new_candidates = team_candidates(key, state, contact, params, dyn)
     done = state.done | ~jnp.any(new_candidates.valid, axis=1) | (state.step >= params.max_steps)
     state = state.replace(candidates=new_candidates, done=done)
     info = StepInfo(
@@ -226,6 +220,17 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
         metrics=state.metrics,
     )
     return state, info
+
+
+def team_candidates(key, state: EnvState, contact: jax.Array, params: EnvParams,
+                    dyn: DynamicParams) -> cands.Candidates:
+    """Every robot's candidates (`candidates.sample`) on its own map; (N, N) `contact`:
+    the robots within radio range, the ones whose positions a robot knows."""
+    return jax.vmap(
+        cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
+        jax.random.split(key, params.n_robots), state.position, state.heading,
+        state.budget_left, state.occupancy, state.position, contact, params.candidates,
+        params.safety, dyn.turn_cost, dyn.collision_distance, params.size)
 
 
 def step_auto_reset(keys, states: EnvState, actions, params: EnvParams, dyn: DynamicParams,
