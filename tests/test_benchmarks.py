@@ -1,0 +1,41 @@
+"""The benchmark scripts `make bench` runs, on tiny batches: each exits cleanly and prints
+the figures it promises as finite JSON lines. They call into the simulator directly, so a
+changed signature there breaks them without failing any other test."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+TINY_BATCH = ["--envs", "4", "--size", "20", "--repeats", "1"]
+
+SCRIPTS = {  # script: (arguments, figures it must print)
+    "env.py": (TINY_BATCH, ["env.agent_steps_per_s", "env.share_candidates",
+                            "env.share_view_gain", "env.share_share_maps", "env.share_gps"]),
+    "sensing.py": (TINY_BATCH, ["sensing.robot_casts_per_s", "sensing.frustum_casts_per_s"]),
+    "train.py": (["--config", "configs/smoke.yaml", "--envs", "8", "--steps", "2",
+                  "--rounds", "1"],
+                 ["train.rollout_agent_steps_per_s", "train.update_samples_per_s",
+                  "train.env_share_of_iteration"]),
+}
+
+
+@pytest.mark.slow  # each script compiles its own programs in a process of its own
+@pytest.mark.parametrize("script", sorted(SCRIPTS))
+def test_benchmark_prints_its_figures(script):
+    arguments, names = SCRIPTS[script]
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / script), *arguments],
+                          cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    figures = {}
+    for line in done.stdout.splitlines():
+        if line.startswith("{"):
+            record = json.loads(line)
+            figures[record["name"]] = record["value"]
+    for name in names:
+        assert name in figures, (name, sorted(figures))
+        assert math.isfinite(figures[name]), (name, figures[name])
