@@ -29,6 +29,7 @@ import numpy as np
 
 from jaxmripp.flight.team import exchange, pads
 from jaxmripp.runtime import weights as fmt
+from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
@@ -76,9 +77,13 @@ def main(argv: list[str] | None = None) -> float:
     from jaxmripp import export as exportmod
     from jaxmripp.sim import sensing, world as worldmod
 
-    cfg = cfgmod.load(args.config)
-    if args.export is not None:
-        exported = fmt.load(args.export)
+    try:
+        cfg = cfgmod.load(args.config)
+        exported = fmt.load(args.export) if args.export is not None else None
+    except (cfgmod.ConfigError, RuntimeInputError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if exported is not None:
         spec, policy = exported.spec, exported.policy
         spacing = exported.header["config"]["robots"].get("pad_spacing",
                                                           cfg.robots.pad_spacing)
