@@ -54,6 +54,12 @@ def test_traversal_matches_dense_sampling():
     for s, e, got in zip(starts.astype(np.float64), ends.astype(np.float64), np.asarray(voxels)):
         reference = np.clip(np.floor(s + t * (e - s)), 0, G - 1).astype(int)
         np.testing.assert_array_equal(flat(got), flat(reference))
+    # The flat form (what the map lookups read) lists the same voxels in the same order.
+    indices, _, _ = jax.jit(jax.vmap(geometry.traverse, in_axes=(0, 0, None, None, None)),
+                            static_argnums=(2, 3, 4))(
+        jnp.asarray(starts / G), jnp.asarray(ends / G), G, REACH, True)
+    v = np.asarray(voxels)
+    np.testing.assert_array_equal(np.asarray(indices), (v[..., 0] * G + v[..., 1]) * G + v[..., 2])
 
 
 def grid_with(cells, code, fill=FREE):

@@ -37,11 +37,11 @@ def _rounded(x: jnp.ndarray) -> jnp.ndarray:
     return jnp.where(jnp.isnan(x), 0.0, x)
 
 
-def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int,
-             max_length: float) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
-    """(3,), (3,) -> voxels (V, 3) int32, entry (V,) float32, complete () bool: the
-    traversal rule of `jaxmripp.spec.grid`, V = 3 + 2 K with K = traversal_steps(G,
-    max_length).
+def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
+             flat: bool = False) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
+    """(3,), (3,) -> voxels (V, 3) int32 (with `flat`: (V,) their `linear_index`), entry
+    (V,) float32, complete () bool: the traversal rule of `jaxmripp.spec.grid`, V = 3 + 2 K
+    with K = traversal_steps(G, max_length).
 
     Steps from crossing to crossing (all axes that cross at the same t at once) and lists,
     per step, the voxel owning the crossing point and the voxel entered after it, with the
@@ -68,6 +68,13 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int,
              for k in range(3)]
     plane = [jnp.where(d[k] > 0, jnp.floor(s[k]) + 1, jnp.ceil(s[k]) - 1) for k in range(3)]
 
+    def emit(voxel):
+        """Per-axis int32 indices -> the clipped voxel (3,), or its flat index: one int32
+        per voxel instead of three (the map lookups of 60 flights per robot read only it)."""
+        clipped = [jnp.clip(voxel[k], 0, size - 1) for k in range(3)]
+        return (clipped[0] * size + clipped[1]) * size + clipped[2] if flat else \
+            jnp.stack(clipped)
+
     def advance(carry, _):
         voxel, plane, t = carry
         t_min = jnp.minimum(jnp.minimum(t[0], t[1]), t[2])
@@ -77,29 +84,28 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int,
         voxel = [voxel[k] + jnp.where(tie[k], step[k], 0) for k in range(3)]
         plane = [plane[k] + jnp.where(tie[k], step[k], 0).astype(jnp.float32) for k in range(3)]
         t = [jnp.where(tie[k], crossing_t(k, plane[k]), t[k]) for k in range(3)]
-        out = (jnp.stack([jnp.where(live, point[k], first[k]) for k in range(3)]),
-               jnp.stack([jnp.where(live, voxel[k], first[k]) for k in range(3)]),
+        out = (emit([jnp.where(live, point[k], first[k]) for k in range(3)]),
+               emit([jnp.where(live, voxel[k], first[k]) for k in range(3)]),
                jnp.where(live, t_min, 0.0))
         return (voxel, plane, t), out
 
     t = [crossing_t(k, plane[k]) for k in range(3)]
     (_, _, left), (points, afters, times) = jax.lax.scan(
         advance, (leave, plane, t), None, length=traversal_steps(size, max_length))
-    voxels = jnp.concatenate([jnp.stack(first)[None], jnp.stack(leave)[None], points, afters,
-                              jnp.stack([jnp.floor(e[k]) for k in range(3)]).astype(
-                                  jnp.int32)[None]])
+    voxels = jnp.concatenate([emit(first)[None], emit(leave)[None], points, afters,
+                              emit([jnp.floor(e[k]).astype(jnp.int32) for k in range(3)])[None]])
     entry = jnp.concatenate([jnp.zeros(2), times, times, jnp.ones(1)])
     complete = jnp.isinf(left[0]) & jnp.isinf(left[1]) & jnp.isinf(left[2])
-    return jnp.clip(voxels, 0, size - 1), entry.astype(jnp.float32), complete
+    return voxels, entry.astype(jnp.float32), complete
 
 
 def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid: jnp.ndarray, size: int,
                     max_length: float) -> jnp.ndarray:
     """(3,), (M, 3), (G, G, G) codes -> (M, V) the codes of every traversed voxel, and (M,)
     whether each list is complete (see `traverse`)."""
-    voxels, _, complete = jax.vmap(traverse, in_axes=(None, 0, None, None))(
-        start, ends, size, max_length)
-    return grid.reshape(-1)[linear_index(voxels, size)], complete
+    flat, _, complete = jax.vmap(traverse, in_axes=(None, 0, None, None, None))(
+        start, ends, size, max_length, True)
+    return grid.reshape(-1)[flat], complete
 
 
 def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray, size: int,
