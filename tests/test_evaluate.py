@@ -188,7 +188,6 @@ def _cli():
     return cli
 
 
-@pytest.mark.slow  # a compilation for 2 devices in a process of its own: make test's budget
 def test_cli_on_two_devices_reproduces_the_sweep(tiny_sweep, tmp_path):
     """eval.py on one shape of the sweep, its episodes split over 2 devices (a padded
     chunk included), reproduces the 1-device numbers and table rows exactly."""
