@@ -1,6 +1,7 @@
-"""The benchmark scripts `make bench` runs, on tiny batches: each exits cleanly and prints
-the figures it promises as finite JSON lines. They call into the simulator directly, so a
-changed signature there breaks them without failing any other test."""
+"""The benchmark scripts `make bench` runs (on tiny batches where they take a batch shape):
+each exits cleanly and prints the figures it promises as finite JSON lines. They call into
+the simulator directly, so a changed signature there breaks them without failing any other
+test."""
 
 import json
 import math
@@ -17,6 +18,9 @@ SCRIPTS = {  # script: (arguments, figures it must print)
     "env.py": (TINY_BATCH, ["env.agent_steps_per_s", "env.share_candidates",
                             "env.share_view_gain", "env.share_share_maps", "env.share_gps"]),
     "sensing.py": (TINY_BATCH, ["sensing.robot_casts_per_s", "sensing.frustum_casts_per_s"]),
+    "gp.py": ([], ["gp.step_per_s", "gp.speedup_vs_refactor", "gp.block_speedup_vs_adds"]),
+    "runtime.py": ([], ["runtime.decision_ms", "runtime.map_message_bytes",
+                        "runtime.policy_forward_ms"]),
     "train.py": (["--config", "configs/smoke.yaml", "--envs", "8", "--steps", "2",
                   "--rounds", "1"],
                  ["train.rollout_agent_steps_per_s", "train.update_samples_per_s",
