@@ -13,12 +13,28 @@ is the program, the flags and the jax version, so a stale entry is never used.
 """
 
 import os
+import subprocess
+import sys
 from pathlib import Path
+
+
+def _with_flag(flag: str) -> str:
+    return f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
+
+
+def _known_to_xla(flag: str) -> bool:
+    """Whether the installed jaxlib knows `flag`: XLA aborts a process that sets an unknown
+    one, so a child process tries it first (once: the test workers and the processes they
+    start inherit the flags set here)."""
+    probe = "import jax.numpy as jnp; jnp.zeros(1).block_until_ready()"
+    return subprocess.run([sys.executable, "-c", probe], capture_output=True,
+                          env={**os.environ, "XLA_FLAGS": _with_flag(flag)}).returncode == 0
+
 
 _FLAGS = {"xla_backend_optimization_level": "0", "xla_cpu_use_fusion_emitters": "false"}
 for _name, _value in _FLAGS.items():
-    if _name not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = f"{os.environ.get('XLA_FLAGS', '')} --{_name}={_value}".strip()
+    if _name not in os.environ.get("XLA_FLAGS", "") and _known_to_xla(f"--{_name}={_value}"):
+        os.environ["XLA_FLAGS"] = _with_flag(f"--{_name}={_value}")
 
 # An environment variable rather than jax.config, so the command-line runs the tests start
 # as subprocesses use the cache too.
