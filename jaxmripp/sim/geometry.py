@@ -71,9 +71,8 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
     def emit(voxel):
         """Per-axis int32 indices -> the clipped voxel (3,), or its flat index: one int32
         per voxel instead of three (the map lookups of 60 flights per robot read only it)."""
-        clipped = [jnp.clip(voxel[k], 0, size - 1) for k in range(3)]
-        return (clipped[0] * size + clipped[1]) * size + clipped[2] if flat else \
-            jnp.stack(clipped)
+        clipped = jnp.stack([jnp.clip(voxel[k], 0, size - 1) for k in range(3)], axis=-1)
+        return linear_index(clipped, size) if flat else clipped
 
     def advance(carry, _):
         voxel, plane, t = carry
