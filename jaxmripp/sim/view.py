@@ -1,10 +1,11 @@
 """The JAX implementation of `jaxmripp.spec.view`: building tops, the view gain of
 candidate poses on a robot's map and the distance to the robots heard.
 
-Per robot and step the gain costs K * 4 * R * S two-table lookups (K candidate positions,
-4 headings, R rays, S samples), all from one static table; the four headings of a
-position share its voxel. Layouts keep the sample axis leading so that the clear-line
-test runs as S whole-array steps instead of a scan over a trailing axis.
+Per robot and step the gain costs K * 4 * R * S lookups (K candidate positions, 4
+headings, R rays, S samples) in one table, the map with facade marked, and their offsets
+from the candidate's voxel are static; the four headings of a position share its voxel.
+The clear-line test runs over the S distances as S whole-array steps instead of a scan
+over a trailing axis.
 """
 
 from __future__ import annotations
@@ -61,60 +62,63 @@ def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
 
 
-def _sample_codes(occupancy: jax.Array, top: jax.Array, position: jax.Array,
-                  sensor: SensorConfig, size: int):
-    """Every sample of every ray of every heading from positions (K, 3): flat voxel index
-    and code, each (S, K * 4 * R) (sample-major, then position, heading, ray), with
-    FACADE for unknown facade voxels and OCCUPIED outside the grid; and the weights (S,)."""
-    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
-    n_samples = offsets.shape[2]
-    # One long trailing axis (K * 4 * R) vectorises; R or 4 alone would not.
-    ox, oy, oz = (np.moveaxis(offsets[..., a], 2, 0).reshape(n_samples, 1, -1) for a in range(3))
-    camera = geometry.voxel_of(position, size)
-    x, y, z = ((camera[None, :, a, None] + o).reshape(n_samples, -1)
-               for a, o in enumerate((ox, oy, oz)))
-    inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
-    flat = (jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)) * size \
-        + jnp.clip(z, 0, size - 1)
-    # Facade folded into the map first, so that each sample takes one gather: a pass over
-    # the map costs less than a second gather per sample.
-    # Without occlusion known buildings are marked FREE here: only leaving the grid (coded
-    # OCCUPIED below) then stops a ray.
+def _marked_map(occupancy: jax.Array, top: jax.Array, sensor: SensorConfig,
+                size: int) -> jax.Array:
+    """The map as the gain reads it, flat (G**3,) int8: FACADE for unknown facade voxels
+    and, without occlusion, known buildings marked FREE (then only leaving the grid,
+    coded OCCUPIED by `_codes`, stops a ray). Facade is folded into the map first so that
+    each sample takes one gather."""
     near = facade_tops(top, sensor)[:, :, None]
     height = jnp.arange(size, dtype=jnp.int8)[None, None, :]
     known = occupancy if sensor.gain_occlusion else \
         jnp.where(occupancy == OCCUPIED, jnp.int8(FREE), occupancy)
-    marked = jnp.where((occupancy == UNKNOWN) & (near > 0) & (height <= near),
-                       jnp.int8(FACADE), known)
-    code = jnp.where(inside, take_flat(marked.reshape(-1), flat), jnp.int8(OCCUPIED))
-    return flat, code, weights
+    return jnp.where((occupancy == UNKNOWN) & (near > 0) & (height <= near),
+                     jnp.int8(FACADE), known).reshape(-1)
+
+
+def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array,
+           size: int) -> tuple[jax.Array, jax.Array]:
+    """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
+    voxel indices and codes from `_marked_map`, OCCUPIED outside the grid."""
+    x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
+    inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
+    flat = (jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)) * size \
+        + jnp.clip(z, 0, size - 1)
+    return flat, jnp.where(inside, take_flat(marked, flat), jnp.int8(OCCUPIED))
 
 
 def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
               sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
     """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
     (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
-    _, code, weights = _sample_codes(occupancy, top, position, sensor, size)
+    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
     rays = spec.RAYS_PER_SIDE**2
+    # Samples (K, 4 * R) at one distance at a time, their voxels computed where they are
+    # read: XLA then fuses the whole sum into one pass, where (S, K * 4 * R) coordinate
+    # arrays would be written to memory and read back.
+    per_distance = np.moveaxis(offsets, 2, 0).reshape(offsets.shape[2], 1, -1, 3)
+    marked = _marked_map(occupancy, top, sensor, size)
+    camera = geometry.voxel_of(position, size)[:, None, :]
     total = rays * int(weights.sum())
     scale = np.float32(1) / np.float32(total)
     # Integer sums, exact in any order. While both totals fit 15 bits (ranges up to about
     # 75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
     # above, so each sample costs one accumulation instead of two.
     packed = total < 1 << 15
-    unknown_sum = jnp.zeros(code.shape[1:], jnp.int32)
-    facade_sum = jnp.zeros(code.shape[1:], jnp.int32)
-    clear = jnp.ones(code.shape[1:], bool)
+    unknown_sum = jnp.zeros((position.shape[0], 4 * rays), jnp.int32)
+    facade_sum = jnp.zeros_like(unknown_sum)
+    clear = jnp.ones(unknown_sum.shape, bool)
     for s, w in enumerate(weights.astype(int)):
-        unknown = clear & ((code[s] == UNKNOWN) | (code[s] == FACADE))
-        facade = clear & (code[s] == FACADE)
+        _, code = _codes(marked, camera, per_distance[s], size)
+        unknown = clear & ((code == UNKNOWN) | (code == FACADE))
+        facade = clear & (code == FACADE)
         if packed:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0) \
                 + jnp.where(facade, jnp.int32(w << 16), 0)
         else:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0)
             facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
-        clear = clear & (code[s] != OCCUPIED)
+        clear = clear & (code != OCCUPIED)
     unknown_sum = unknown_sum.reshape(position.shape[0], 4, rays).sum(-1)
     if packed:
         unknown_sum, facade_sum = unknown_sum & 0xFFFF, unknown_sum >> 16
@@ -127,10 +131,10 @@ def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
                     heading: jax.Array, sensor: SensorConfig, size: int) -> jax.Array:
     """The flat indices of the unknown samples of one pose ((3,), () int32) -> (R * S,)
     int32, G**3 for the other samples: the part of the map that pose would reveal."""
-    flat, code, _ = _sample_codes(occupancy, top, position[None], sensor, size)
-    rays = spec.RAYS_PER_SIDE**2
-    flat, code = (jax.lax.dynamic_slice_in_dim(x, heading * rays, rays, axis=1)
-                  for x in (flat, code))  # (S, R)
+    offsets, _ = spec.gain_table(sensor.fov_deg, sensor.range, size)
+    camera = geometry.voxel_of(position, size)
+    flat, code = _codes(_marked_map(occupancy, top, sensor, size), camera,
+                        jnp.asarray(np.moveaxis(offsets, 2, 1))[heading], size)  # (S, R)
     blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
     unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
     return jnp.where(unknown, flat, size**3).reshape(-1)
