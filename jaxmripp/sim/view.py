@@ -2,10 +2,9 @@
 candidate poses on a robot's map and the distance to the robots heard.
 
 Per robot and step the gain costs K * 4 * R * S lookups (K candidate positions, 4
-headings, R rays, S samples) in one table, the map with facade marked, and their offsets
-from the candidate's voxel are static; the four headings of a position share its voxel.
-The clear-line test runs over the S distances as S whole-array steps instead of a scan
-over a trailing axis.
+headings, R rays, S samples) in the map with facade marked, at static offsets from the
+candidate's voxel; the four headings of a position share its voxel. The clear-line test
+runs over the S distances as S whole-array steps instead of a scan over a trailing axis.
 """
 
 from __future__ import annotations
@@ -66,8 +65,8 @@ def _marked_map(occupancy: jax.Array, top: jax.Array, sensor: SensorConfig,
                 size: int) -> jax.Array:
     """The map as the gain reads it, flat (G**3,) int8: FACADE for unknown facade voxels
     and, without occlusion, known buildings marked FREE (then only leaving the grid,
-    coded OCCUPIED by `_codes`, stops a ray). Facade is folded into the map first so that
-    each sample takes one gather."""
+    coded OCCUPIED by `_codes`, stops a ray). XLA fuses it into the reads of `_codes`:
+    each sample reads its voxel's code and its column's facade top."""
     near = facade_tops(top, sensor)[:, :, None]
     height = jnp.arange(size, dtype=jnp.int8)[None, None, :]
     known = occupancy if sensor.gain_occlusion else \
