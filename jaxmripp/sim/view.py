@@ -75,6 +75,13 @@ def _marked_map(occupancy: jax.Array, top: jax.Array, sensor: SensorConfig,
                      jnp.int8(FACADE), known).reshape(-1)
 
 
+def _sample_major(sensor: SensorConfig, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """`spec.gain_table` with the sample axis before the rays: offsets (4, S, R, 3) and
+    weights (S,), so that the clear-line test steps over leading sample slices."""
+    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
+    return np.moveaxis(offsets, 2, 1), weights
+
+
 def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array,
            size: int) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
@@ -90,12 +97,12 @@ def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
               sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
     """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
     (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
-    offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
+    offsets, weights = _sample_major(sensor, size)
     rays = spec.RAYS_PER_SIDE**2
     # Samples (K, 4 * R) at one distance at a time, their voxels computed where they are
     # read: XLA then fuses the whole sum into one pass, where (S, K * 4 * R) coordinate
     # arrays would be written to memory and read back.
-    per_distance = np.moveaxis(offsets, 2, 0).reshape(offsets.shape[2], 1, -1, 3)
+    per_distance = np.moveaxis(offsets, 1, 0).reshape(len(weights), 1, -1, 3)
     marked = _marked_map(occupancy, top, sensor, size)
     camera = geometry.voxel_of(position, size)[:, None, :]
     total = rays * int(weights.sum())
@@ -130,10 +137,10 @@ def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
                     heading: jax.Array, sensor: SensorConfig, size: int) -> jax.Array:
     """The flat indices of the unknown samples of one pose ((3,), () int32) -> (R * S,)
     int32, G**3 for the other samples: the part of the map that pose would reveal."""
-    offsets, _ = spec.gain_table(sensor.fov_deg, sensor.range, size)
+    offsets, _ = _sample_major(sensor, size)
     camera = geometry.voxel_of(position, size)
     flat, code = _codes(_marked_map(occupancy, top, sensor, size), camera,
-                        jnp.asarray(np.moveaxis(offsets, 2, 1))[heading], size)  # (S, R)
+                        jnp.asarray(offsets)[heading], size)  # (S, R)
     blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
     unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
     return jnp.where(unknown, flat, size**3).reshape(-1)
