@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp.sim import geometry, sensing, world
+from jaxmripp.sim import geometry, sensing, view, world
 from jaxmripp.config import SensorConfig, WorldConfig
 
 _cast = jax.jit(sensing.cast, static_argnums=(3, 4))
@@ -203,6 +203,24 @@ def test_maps_match_truth_and_occupied_never_turns_free():
         assert np.all(known[before != geometry.UNKNOWN])
         before = after
     assert (before == geometry.OCCUPIED).sum() > 0 and (before == geometry.FREE).sum() > 1000
+
+
+@pytest.mark.parametrize("model", ["raycast", "frustum"])
+def test_a_cast_raises_each_column_to_its_highest_voxel_observed_occupied(model):
+    w = random_world(4)
+    sensor = SensorConfig(model=model)
+    raised = 0
+    for position, heading in free_poses(w, 12, seed=7):
+        result = _cast(w, jnp.asarray(position), jnp.int32(heading), sensor, G)
+        voxels, values = np.asarray(result.voxels), np.asarray(result.values)
+        expected = np.zeros((G, G), int)
+        for v in voxels[(voxels < G**3) & (values == geometry.OCCUPIED)]:
+            x, y, z = np.unravel_index(v, (G, G, G))
+            expected[x, y] = max(expected[x, y], z + 1)
+        top = view.raise_tops_from_cast(jnp.zeros((G, G), jnp.int8), result)
+        np.testing.assert_array_equal(np.asarray(top), expected)
+        raised += expected.max() > 0
+    assert raised >= 3
 
 
 @pytest.mark.parametrize("size", [75, 125])

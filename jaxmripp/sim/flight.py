@@ -11,33 +11,12 @@ import math
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.spec.flight import takes_no_closer
+from jaxmripp.spec import flight as spec
 
 
 def closest_approach(a0: jax.Array, a1: jax.Array, b0: jax.Array, b1: jax.Array) -> jax.Array:
-    """(..., 3) x 4 -> (...,) the least distance between robots flying a0 -> a1 and
-    b0 -> b1 at one common speed from the same moment (the shorter flight hovers at its end).
-    """
-    la = jnp.linalg.norm(a1 - a0, axis=-1, keepdims=True)
-    lb = jnp.linalg.norm(b1 - b0, axis=-1, keepdims=True)
-    ua = jnp.where(la > 0, (a1 - a0) / jnp.where(la > 0, la, 1.0), 0.0)
-    ub = jnp.where(lb > 0, (b1 - b0) / jnp.where(lb > 0, lb, 1.0), 0.0)
-    short, long = jnp.minimum(la, lb), jnp.maximum(la, lb)
-    # Phase 1, t in [0, short]: both fly.  Phase 2, t in [short, long]: the longer one flies
-    # on while the other hovers at its end; the gap there is r(short) + w2 (t - short).
-    r0 = a0 - b0
-    w1 = ua - ub
-    w2 = jnp.where(la > lb, ua, -ub)
-    gap1 = _least_gap(r0, w1, 0.0, short)
-    gap2 = _least_gap(r0 + w1 * short, w2, 0.0, long - short)
-    return jnp.minimum(gap1, gap2)
-
-
-def _least_gap(r0, w, lo, hi):
-    """min over t in [lo, hi] of |r0 + w t|; shapes (..., 3), (..., 3), (..., 1)."""
-    ww = jnp.sum(w * w, axis=-1, keepdims=True)
-    t = jnp.clip(-jnp.sum(r0 * w, axis=-1, keepdims=True) / jnp.where(ww > 0, ww, 1.0), lo, hi)
-    return jnp.linalg.norm(r0 + w * t, axis=-1)
+    """(..., 3) x 4, broadcasting -> (...,) `jaxmripp.spec.flight.closest_approach`."""
+    return spec.closest_approach(a0, a1, b0, b1, jnp)
 
 
 def clear_of_robots(start: jax.Array, ends: jax.Array, others: jax.Array, heard: jax.Array,
@@ -45,21 +24,16 @@ def clear_of_robots(start: jax.Array, ends: jax.Array, others: jax.Array, heard:
     """(3,), (M, 3), (N, 3), (N,) -> (M,) True where the flight start -> end keeps more than
     d_c from every robot heard, hovering where it was heard; with `escape` (static) also
     where it takes the robot no closer to it (`jaxmripp.spec.flight`)."""
-    m, n = ends.shape[0], others.shape[0]
-    a0 = jnp.broadcast_to(start, (m, n, 3))
-    a1 = jnp.broadcast_to(ends[:, None, :], (m, n, 3))
-    b = jnp.broadcast_to(others[None], (m, n, 3))
-    clear = closest_approach(a0, a1, b, b) > collision_distance
+    a0, a1, b = start[None, None, :], ends[:, None, :], others[None, :, :]
+    clear = closest_approach(a0, a1, b, b) > collision_distance  # (M, N)
     if escape:
-        clear = clear | takes_no_closer(a0, a1, b)
+        clear = clear | spec.takes_no_closer(a0, a1, b)
     return jnp.all(~heard[None, :] | clear, axis=-1)
 
 
 def pairwise_approach(start: jax.Array, end: jax.Array) -> jax.Array:
     """(N, 3), (N, 3) flights -> (N, N) closest approach of every pair."""
-    n = start.shape[0]
-    grid = lambda x, axis: jnp.broadcast_to(jnp.expand_dims(x, axis), (n, n, 3))
-    return closest_approach(grid(start, 1), grid(end, 1), grid(start, 0), grid(end, 0))
+    return closest_approach(start[:, None], end[:, None], start[None], end[None])
 
 
 def ranks_above(budget_left: jax.Array, priority: str) -> jax.Array:

@@ -42,7 +42,9 @@ def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Arra
 
 
 def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
-    return raise_tops(top, cast.voxels, cast.values)
+    """(G, G) int8 tops after a cast: the cast's own per-column tops, the same as
+    `raise_tops` over its voxels and values."""
+    return scatter_max(top.reshape(-1), cast.columns, cast.column_tops).reshape(top.shape)
 
 
 def nearby_tops(top: jax.Array) -> jax.Array:
@@ -155,7 +157,9 @@ def peer_distance(position: jax.Array, others: jax.Array, heard: jax.Array,
                   shell_outer: float) -> jax.Array:
     """Candidate positions (L, 3), all robots' positions (N, 3), heard (N,) bool -> (L,)
     min(PEER_CAP, distance to the nearest robot heard / shell[1])."""
-    gap = position[:, None, :] - others[None, :, :]
-    distance = jnp.sqrt(jnp.sum(gap * gap, axis=-1)) * (np.float32(1) / np.float32(shell_outer))
+    # Component by component: a sum over a trailing axis of 3 does not vectorise.
+    gap = [position[:, None, k] - others[None, :, k] for k in range(3)]
+    square = gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2]
+    distance = jnp.sqrt(square) * (np.float32(1) / np.float32(shell_outer))
     distance = jnp.where(heard[None, :], distance, jnp.float32(spec.PEER_CAP))
     return jnp.minimum(jnp.min(distance, axis=-1), jnp.float32(spec.PEER_CAP))
