@@ -511,7 +511,8 @@ def place(state, starts, targets, done=(False,) * N):
         position=c.position.at[:, 0].set(targets), heading=c.heading.at[:, 0].set(state.heading),
         cost=c.cost.at[:, 0].set(jnp.linalg.norm(targets - starts, axis=-1)),
         valid=c.valid.at[:, 0].set(True))
-    world = state.world.replace(height=jnp.zeros_like(state.world.height))
+    world = worldmod.World.build(jnp.zeros_like(state.world.height), state.world.target_voxel,
+                                 state.world.target_valid)
     return state.replace(world=world, position=starts, candidates=candidates,
                          done=jnp.asarray(done), budget_left=jnp.full((N,), 2.0, jnp.float32))
 

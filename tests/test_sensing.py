@@ -49,8 +49,8 @@ def scene(size: int, columns: dict, windows: list, capacity: int = 8) -> world.W
         height[x, y] = h
     voxel = np.zeros((capacity, 3), np.int32)
     voxel[: len(windows)] = windows
-    return world.World(height=jnp.asarray(height), target_voxel=jnp.asarray(voxel),
-                       target_valid=jnp.arange(capacity) < len(windows))
+    return world.World.build(jnp.asarray(height), jnp.asarray(voxel),
+                             jnp.arange(capacity) < len(windows))
 
 
 def centre(voxel, size):

@@ -143,6 +143,32 @@ def test_occupied_and_truth_agree():
     assert not truth[0, 0, 0] == geometry.OCCUPIED  # the robots' start is free
 
 
+def test_open_faces_hand_worked():
+    height = np.zeros((8, 8), np.int32)
+    height[5, 5], height[6, 5], height[0, 3] = 4, 2, 3
+    windows = [(5, 5, 1), (5, 5, 3), (0, 3, 2)]
+    w = world.World.build(jnp.asarray(height), jnp.asarray(windows, jnp.int32),
+                          jnp.ones(3, bool))
+    np.testing.assert_array_equal(np.asarray(w.target_open), [  # -x, +x, -y, +y, +z
+        [True, False, True, True, False],  # low on the tall column, beside the short one
+        [True, True, True, True, True],  # above the short neighbour, on the roof
+        [True, True, True, True, True],  # on the grid's edge (outside is air), on the roof
+    ])
+    np.testing.assert_array_equal(world.FACES.sum(axis=1), [-1, 1, -1, 1, 1])
+
+
+def test_generated_windows_face_the_air_where_their_neighbours_are_free():
+    cfg, w = city(5, layout="random")
+    beside = w.target_voxel[:, None, :] + world.FACES
+    truth = np.asarray(world.truth_occupancy(w, cfg.size))
+    inside = np.all((beside >= 0) & (beside < cfg.size), axis=-1)
+    solid = np.zeros(inside.shape, bool)
+    solid[inside] = truth[tuple(beside[inside].T)] == geometry.OCCUPIED
+    valid = w.target_valid
+    np.testing.assert_array_equal(w.target_open[valid], ~solid[valid])
+    assert w.target_open[valid].any(axis=1).all()  # facade windows are seen from somewhere
+
+
 @pytest.mark.parametrize("placement", ["facade", "footprint"])
 def test_varied_footprints_are_rectangles_in_range_with_windows_on_them(placement):
     cfg, w = city(6, layout="random", footprint=5, footprint_min=2, target_placement=placement)

@@ -272,23 +272,26 @@ def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear):
     ray nearest q's direction gets within `_SURFACE` of q. (Aiming at faces rather than
     the voxel centre matters for walls seen at an angle, whose centre rays enter through
     the neighbouring voxel.)"""
-    n, size = cam.n, world.height.shape[0]
+    n = cam.n
     x, y, z = (world.target_voxel[:, k] for k in range(3))
     rel_centre = [(v - c).astype(jnp.float32) for v, c in zip((x, y, z), (pose.x, pose.y, pose.z))]
     toward = [jnp.where(r < 0, 1, -1) for r in rel_centre]  # the side facing the camera
-    column = lambda cx, cy: _column_height(world.height.reshape(-1), cx, cy, size)
-    open_air = (column(x + toward[0], y) <= z, column(x, y + toward[1]) <= z,
-                (toward[2] > 0) & (z + 1 >= column(x, y)))
+    faces = world.target_open  # (T, 5): -x, +x, -y, +y, +z (world.FACES)
+    open_air = (jnp.where(toward[0] > 0, faces[:, 1], faces[:, 0]),
+                jnp.where(toward[1] > 0, faces[:, 3], faces[:, 2]),
+                (toward[2] > 0) & faces[:, 4])
     fx, fy, rx, ry = (v.astype(jnp.float32) for v in pose[:4])
-    seen = jnp.zeros(x.shape, bool)
+    in_sight = []
     for axis in range(3):
         rel = [r + 0.5 * t if k == axis else r for k, (r, t) in enumerate(zip(rel_centre, toward))]
         per_cell = (n / 2) / (cam.tan * jnp.maximum(rel[0] * fx + rel[1] * fy, 1e-3))
         cell = lambda s: jnp.clip(jnp.floor(s * per_cell + n / 2), 0, n - 1).astype(jnp.int32)
         reach = take_flat(clear, cell(rel[0] * rx + rel[1] * ry) * n + cell(rel[2])) + _SURFACE
-        in_sight = reach * reach >= sum(r * r for r in rel)
-        seen |= (rel[axis] * toward[axis] < 0) & open_air[axis] & in_sight
-    return seen
+        in_sight.append((rel[axis] * toward[axis] < 0) & open_air[axis]
+                        & (reach * reach >= sum(r * r for r in rel)))
+    # A reduction, which XLA materialises once; an elementwise `or` would be recomputed
+    # inside each of the consumers of `seen` (rewards, discoveries, the utility).
+    return jnp.any(jnp.stack(in_sight), axis=0)
 
 
 @jax.custom_batching.custom_vmap

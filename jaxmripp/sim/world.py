@@ -32,6 +32,9 @@ from jaxmripp.config import WorldConfig
 _RANDOM_LOTS_PER_BUILDING = 2.0  # more lots -> more irregular layouts, less jitter per lot
 
 
+FACES = np.array([(-1, 0, 0), (1, 0, 0), (0, -1, 0), (0, 1, 0), (0, 0, 1)], np.int32)
+
+
 @flax.struct.dataclass
 class World:
     """Ground truth of one city (G = grid size, T = cfg.target_capacity)."""
@@ -39,6 +42,20 @@ class World:
     height: jax.Array  # (G, G) int32 building height in voxels per (x, y) column; 0 = none
     target_voxel: jax.Array  # (T, 3) int32 voxel of each window
     target_valid: jax.Array  # (T,) bool; valid windows come first, padding slots are False
+    target_open: jax.Array  # (T, 5) bool faces of each window open to the air, in the
+    #                         order of FACES (its bottom face rests on the building)
+
+    @classmethod
+    def build(cls, height: jax.Array, target_voxel: jax.Array,
+              target_valid: jax.Array) -> World:
+        """The world with these truths and the faces derived from them (build a changed
+        world anew rather than `replace` a truth, so the faces follow)."""
+        world = cls(height=height, target_voxel=target_voxel, target_valid=target_valid,
+                    target_open=jnp.zeros((*target_valid.shape, len(FACES)), bool))
+        # A face is open where the voxel beyond it is not a building: out of the grid,
+        # above a roof, or beside a shorter column.
+        beside = target_voxel[..., None, :] + jnp.asarray(FACES)
+        return world.replace(target_open=~occupied(world, beside))
 
     @property
     def n_targets(self) -> jax.Array:
@@ -204,8 +221,7 @@ def generate(key: chex.PRNGKey, cfg: WorldConfig) -> World:
         sides = jax.random.randint(jax.random.fold_in(key, 1), (cfg.n_buildings, 2),
                                    cfg.footprint_min, cfg.footprint + 1)
     target_voxel, target_valid = _windows(key_window, origins, heights, cfg, sides)
-    return World(height=_height_map(origins, heights, cfg, sides), target_voxel=target_voxel,
-                  target_valid=target_valid)
+    return World.build(_height_map(origins, heights, cfg, sides), target_voxel, target_valid)
 
 
 # ---------------------------------------------------------------------------------------
