@@ -289,7 +289,11 @@ def test_closest_approach_equals_sampling_and_jax_on_random_flights():
     ours = flight.closest_approach(a0, a1, b0, b1)
     assert ours.dtype == F32 and ours.shape == (n,)
     want = np.asarray(jax.jit(jax_flight.closest_approach)(a0, a1, b0, b1))
-    np.testing.assert_allclose(ours, want, atol=2e-7)
+    np.testing.assert_array_equal(ours, want)  # one rule, the same bits (spec.vectors)
+    # Inside a larger fusion too: the candidates' rule, vmapped over flights.
+    fused = jax.jit(jax.vmap(lambda *v: jax_flight.closest_approach(*v)[0]))(
+        *(x[:, None] for x in (a0, a1, b0, b1)))
+    np.testing.assert_array_equal(ours, np.asarray(fused))
     for k in range(0, n, 5):
         assert ours[k] == pytest.approx(sampled_approach(a0[k], a1[k], b0[k], b1[k]),
                                         abs=1e-5)

@@ -8,8 +8,8 @@ turns a division by a compile-time constant (the total weight, the shell radius)
 multiplication by its float32 reciprocal, so this side multiplies by that reciprocal too
 (a true division differs in the last bit for 13% to 60% of the possible sums, depending
 on the total). `per_cost` divides by the cost, which is no constant, as the JAX side does.
-`peer_distance` sums the three squares left to right, as XLA does without LLVM
-optimisation; with it, XLA may round that sum differently, by one unit in the last place.
+`peer_distance` is the vector arithmetic of `jaxmripp.spec.vectors`, which both sides
+evaluate to the same bits.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, PaddedMaps, voxel_of
+from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
 
 F32 = np.float32
@@ -173,8 +174,6 @@ def peer_distance(position: np.ndarray, heard: np.ndarray, shell_outer: float) -
     heard = np.asarray(heard, F32).reshape(-1, 3)
     if not len(heard):
         return np.full(len(position), F32(spec.PEER_CAP), F32)
-    gap = position[:, None, :] - heard[None, :, :]
-    square = gap * gap
-    scale = F32(1) / F32(shell_outer)
-    distance = np.sqrt(square[..., 0] + square[..., 1] + square[..., 2]) * scale
+    gap = vectors.components(position[:, None, :] - heard[None, :, :])
+    distance = np.sqrt(vectors.dot(gap, gap, np)) * (F32(1) / F32(shell_outer))
     return np.minimum(distance.min(axis=1), F32(spec.PEER_CAP)).astype(F32)

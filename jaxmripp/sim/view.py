@@ -17,6 +17,7 @@ from jaxmripp.config import SensorConfig
 from jaxmripp.sim import geometry
 from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.sim.sensing import CastResult, scatter_max, take_flat
+from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
 
 
@@ -157,9 +158,7 @@ def peer_distance(position: jax.Array, others: jax.Array, heard: jax.Array,
                   shell_outer: float) -> jax.Array:
     """Candidate positions (L, 3), all robots' positions (N, 3), heard (N,) bool -> (L,)
     min(PEER_CAP, distance to the nearest robot heard / shell[1])."""
-    # Component by component: a sum over a trailing axis of 3 does not vectorise.
-    gap = [position[:, None, k] - others[None, :, k] for k in range(3)]
-    square = gap[0] * gap[0] + gap[1] * gap[1] + gap[2] * gap[2]
-    distance = jnp.sqrt(square) * (np.float32(1) / np.float32(shell_outer))
+    gap = vectors.components(position[:, None, :] - others[None, :, :])
+    distance = jnp.sqrt(vectors.dot(gap, gap, jnp)) * (np.float32(1) / np.float32(shell_outer))
     distance = jnp.where(heard[None, :], distance, jnp.float32(spec.PEER_CAP))
     return jnp.minimum(jnp.min(distance, axis=-1), jnp.float32(spec.PEER_CAP))

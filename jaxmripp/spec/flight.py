@@ -53,33 +53,21 @@ Collisions (the environment's ground truth)
     y = start_y face: robot i at start + spacing (i mod m, 0, i div m), m = ceil(sqrt(N)).
 """
 
+from jaxmripp.spec.vectors import components, dot, rounded, unit
+
 FLIGHT_MODES = ("known_free", "truncate", "optimistic")
-
-
-def _dot(u, v):
-    """Dot product of component triples (x, y, z arrays), summed in x, y, z order."""
-    return u[0] * v[0] + u[1] * v[1] + u[2] * v[2]
-
-
-def _components(v):
-    return [v[..., k] for k in range(3)]
 
 
 def closest_approach(a0, a1, b0, b1, xp):
     """(..., 3) x 4, broadcasting -> (...,): the least distance between robots flying
-    a0 -> a1 and b0 -> b1 at one common speed from the same moment (above). `xp` is numpy
-    or jax.numpy, so both sides share this rule; pass float32 arrays.
-
-    Written on the x, y, z components as separate arrays: XLA:CPU does not vectorise a
-    reduction over a trailing axis of 3, and the candidates' rule evaluates this for every
-    draw and robot heard.
-    """
-    a0, a1, b0, b1 = (_components(v) for v in (a0, a1, b0, b1))
+    a0 -> a1 and b0 -> b1 at one common speed from the same moment (above). Float32 in,
+    float32 out; `xp` is numpy or jax.numpy, and both give the same bits
+    (`jaxmripp.spec.vectors`)."""
+    a0, a1, b0, b1 = (components(v) for v in (a0, a1, b0, b1))
     da = [e - s for s, e in zip(a0, a1)]
     db = [e - s for s, e in zip(b0, b1)]
-    la, lb = xp.sqrt(_dot(da, da)), xp.sqrt(_dot(db, db))
-    ua = [xp.where(la > 0, d / xp.where(la > 0, la, 1.0), 0.0) for d in da]
-    ub = [xp.where(lb > 0, d / xp.where(lb > 0, lb, 1.0), 0.0) for d in db]
+    la, lb = xp.sqrt(dot(da, da, xp)), xp.sqrt(dot(db, db, xp))
+    ua, ub = unit(da, la, xp), unit(db, lb, xp)
     short, long = xp.minimum(la, lb), xp.maximum(la, lb)
     # Phase 1, t in [0, short]: both fly. Phase 2, t in [short, long]: the longer flight
     # goes on while the other hovers at its end; the gap there is r(short) + w2 (t - short).
@@ -87,16 +75,21 @@ def closest_approach(a0, a1, b0, b1, xp):
     w1 = [u - v for u, v in zip(ua, ub)]
     w2 = [xp.where(la > lb, u, -v) for u, v in zip(ua, ub)]
     gap1 = _least_gap(r0, w1, short, xp)
-    gap2 = _least_gap([r + w * short for r, w in zip(r0, w1)], w2, long - short, xp)
+    gap2 = _least_gap(_along(r0, w1, short, xp), w2, long - short, xp)
     return xp.minimum(gap1, gap2)
+
+
+def _along(r, w, t, xp) -> list:
+    """r + w t, on component triples."""
+    return [a + rounded(b * t, xp) for a, b in zip(r, w)]
 
 
 def _least_gap(r0, w, hi, xp):
     """min over t in [0, hi] of |r0 + w t|, on component triples."""
-    ww = _dot(w, w)
-    t = xp.clip(-_dot(r0, w) / xp.where(ww > 0, ww, 1.0), 0.0, hi)
-    gap = [r + v * t for r, v in zip(r0, w)]
-    return xp.sqrt(_dot(gap, gap))
+    ww = dot(w, w, xp)
+    t = xp.clip(-dot(r0, w, xp) / xp.where(ww > 0, ww, 1.0), 0.0, hi)
+    gap = _along(r0, w, t, xp)
+    return xp.sqrt(dot(gap, gap, xp))
 
 
 def takes_no_closer(start, end, other):

@@ -6,8 +6,7 @@ what it and the robots it heard have seen): the JAX environment
 integer sums times one float32 reciprocal, so both give the same float32 numbers: below,
 dividing by the total weight or by shell[1] (constants) means multiplying by their float32
 reciprocal, which is what XLA compiles such a division to; dividing by the cost is a
-division. peer_distance may differ by one unit in the last place (the sum of
-three squares may be fused differently).
+division. peer_distance is `jaxmripp.spec.vectors` arithmetic, the same bits on both.
 
 Building tops
     Every map keeps, per column (x, y), top = 1 + the highest z mapped OCCUPIED in it, or 0
