@@ -24,11 +24,8 @@ Performance notes (XLA:CPU, measured): vectors are separate x / y / z arrays, si
 trailing-axis reductions do not vectorise; per-cast scalars and per-ray distances come out
 of integer reductions, which XLA never fuses into their consumers, so they are computed
 once instead of inside every gather that reads them (`optimization_barrier` is dropped on
-CPU); gathers from batched tables (height maps, rays) fold the batch into one flat
-table (`take_flat`), as do the occupancy scatter and the building tops' (`_flat_scatter`);
-and the view voxels of both sensors are laid out column by column (C columns of up to Z
-heights, padding masked), so a cast reads each column's building height once and raises
-each column's top once, by a maximum over its heights, rather than per voxel.
+CPU); and gathers from batched tables (height maps, rays) fold the batch into one flat
+table (`take_flat`), as do the occupancy scatter and the building tops' (`_flat_scatter`).
 """
 
 from __future__ import annotations
@@ -57,15 +54,11 @@ _INF_BITS = np.float32(np.inf).view(np.int32)
 
 @flax.struct.dataclass
 class CastResult:
-    """What one pose senses (T = target capacity, V = `view_size(sensor, G)`, C = the
-    columns the view crosses). Voxels come column by column, so V includes padding."""
+    """What one pose senses (T = target capacity, V = `view_size(sensor, G)`)."""
 
     seen: jax.Array  # (T,) bool windows seen from this pose (valid ones only)
     voxels: jax.Array  # (V,) int32 flat voxel indices observed; G**3 where not observed
     values: jax.Array  # (V,) int8 true code (FREE / OCCUPIED) of each observed voxel
-    columns: jax.Array  # (C,) int32 flat column (x G + y) of each view column; G**2 where
-    #                     no voxel of it was observed OCCUPIED
-    column_tops: jax.Array  # (C,) int8 1 + the highest z observed OCCUPIED in the column
 
 
 # ---------------------------------------------------------------------------------------
@@ -82,9 +75,9 @@ class _Camera(NamedTuple):
     s_out: np.ndarray  # (n, K) float32 ... and where it leaves it
     direction: np.ndarray  # (2, n) float32 (forward, right) horizontal unit vector per azimuth
     slope: np.ndarray  # (n, n) float32 rise per horizontal voxel of ray (azimuth, elevation)
-    view: _Columns  # the view voxels (below), column by column
-    view_ray: np.ndarray  # (C, Z) int32 ray nearest the direction of each view voxel
-    view_distance: np.ndarray  # (C, Z) float32 distance to each view voxel's centre
+    view: np.ndarray  # (3, V) int32 (forward, right, up) offsets of the view voxels
+    view_ray: np.ndarray  # (V,) int32 ray nearest the direction of each view voxel
+    view_distance: np.ndarray  # (V,) float32 distance to each view voxel's centre
 
 
 def _in_raycast_view(a, b, c, tan, reach):
@@ -108,31 +101,6 @@ def _view_table(inside, extent: int) -> np.ndarray:
     grid = np.arange(-extent, extent + 1)
     offsets = np.stack([x.ravel() for x in np.meshgrid(grid, grid, grid, indexing="ij")])
     return offsets[:, inside(*offsets)].astype(np.int32)
-
-
-class _Columns(NamedTuple):
-    """A view table (3, V) regrouped by column: the C distinct (forward, right) offsets,
-    each with its up offsets in ascending order, padded to the tallest column's Z. Per
-    column quantities (the building height, the top a cast raises) are then computed once
-    per column instead of once per voxel, and a voxel's height is a broadcast."""
-
-    column: np.ndarray  # (2, C) int32 (forward, right) offsets
-    up: np.ndarray  # (C, Z) int32 up offsets (0 in padding)
-    member: np.ndarray  # (C, Z) bool: a voxel of the view, not padding
-    voxel: np.ndarray  # (C, Z) int32 the voxel's index in the (3, V) table (0 in padding)
-
-
-def _by_column(view: np.ndarray) -> _Columns:
-    a, b, c = view
-    keys, column_of = np.unique(np.stack([a, b], 1), axis=0, return_inverse=True)
-    counts = np.bincount(column_of)
-    order = np.lexsort((c, column_of))  # by column, then up offset
-    rank = np.arange(len(order)) - (np.cumsum(counts) - counts)[column_of[order]]
-    shape = (len(keys), counts.max())
-    voxel, member = np.zeros(shape, np.int32), np.zeros(shape, bool)
-    voxel[column_of[order], rank], member[column_of[order], rank] = order, True
-    return _Columns(keys.T.astype(np.int32), np.where(member, c[voxel], 0).astype(np.int32),
-                    member, voxel)
 
 
 def _crossed_columns(direction: np.ndarray, reach: float):
@@ -171,21 +139,20 @@ def _camera(sensor: SensorConfig, size: int) -> _Camera:
     ahead = np.maximum(a, 1)  # the own voxel (a = 0) takes the central ray; any would do
     cell = lambda x: np.clip(np.floor((x / ahead / tan + 1) * n / 2), 0, n - 1).astype(np.int32)
     distance = np.sqrt(a * a + b * b + c * c).astype(np.float32)
-    columns = _by_column(view)
     return _Camera(reach, tan, n, column, s_in, s_out, direction.astype(np.float32), slope,
-                   columns, (cell(b) * n + cell(c))[columns.voxel], distance[columns.voxel])
+                   view, cell(b) * n + cell(c), distance)
 
 
 @functools.lru_cache(maxsize=None)
-def _frustum(sensor: SensorConfig, size: int) -> tuple[int, _Columns]:
+def _frustum(sensor: SensorConfig, size: int) -> tuple[int, np.ndarray]:
     depth = max(1, round(sensor.range * size))
-    return depth, _by_column(_view_table(lambda a, b, c: _in_frustum(a, b, c, depth, np), depth))
+    return depth, _view_table(lambda a, b, c: _in_frustum(a, b, c, depth, np), depth)
 
 
 def view_size(sensor: SensorConfig, size: int) -> int:
-    """V: the length of CastResult.voxels for this sensor and grid size (C x Z)."""
+    """V: the length of CastResult.voxels for this sensor and grid size."""
     table = _camera(sensor, size).view if sensor.model == "raycast" else _frustum(sensor, size)[1]
-    return table.member.size
+    return table.shape[1]
 
 
 # ---------------------------------------------------------------------------------------
@@ -335,12 +302,11 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
     else:
         depth, table = _frustum(sensor, size)
 
-    # View voxels (C, Z), column by column: world coordinates and true codes.
-    x, y = pose.to_world(*table.column)  # (C,)
-    z = pose.z + table.up
-    keep = table.member & ((x >= 0) & (x < size) & (y >= 0) & (y < size))[:, None] \
-        & (z >= 0) & (z < size)
-    solid = z < _column_height(height, x, y, size)[:, None]
+    # View voxels: world coordinates and true codes.
+    a, b, c = table
+    voxel = (*pose.to_world(a, b), pose.z + c)
+    keep = functools.reduce(jnp.logical_and, [(v >= 0) & (v < size) for v in voxel])
+    solid = voxel[2] < _column_height(height, voxel[0], voxel[1], size)
     values = jnp.where(solid, geometry.OCCUPIED, geometry.FREE).astype(jnp.int8)
 
     # Windows in camera-frame offsets.
@@ -356,15 +322,9 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
     else:
         seen = _in_frustum(ahead, right, offset[2], depth)
 
-    column = x * size + y
-    flat = column[:, None] * size + z
-    # The top this cast raises in each column: one scatter entry per column, not per voxel.
-    top = jnp.max(jnp.where(keep & solid, z + 1, 0), axis=1)
+    flat = (voxel[0] * size + voxel[1]) * size + voxel[2]
     return CastResult(seen=seen & world.target_valid,
-                      voxels=jnp.where(keep, flat, size**3).astype(jnp.int32).reshape(-1),
-                      values=values.reshape(-1),
-                      columns=jnp.where(top > 0, column, size * size).astype(jnp.int32),
-                      column_tops=top.astype(jnp.int8))
+                      voxels=jnp.where(keep, flat, size**3).astype(jnp.int32), values=values)
 
 
 def _flat_scatter(write: str):

@@ -43,9 +43,7 @@ def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Arra
 
 
 def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
-    """(G, G) int8 tops after a cast: the cast's own per-column tops, the same as
-    `raise_tops` over its voxels and values."""
-    return scatter_max(top.reshape(-1), cast.columns, cast.column_tops).reshape(top.shape)
+    return raise_tops(top, cast.voxels, cast.values)
 
 
 def nearby_tops(top: jax.Array) -> jax.Array:

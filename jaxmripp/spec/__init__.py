@@ -6,6 +6,7 @@ is written once:
 
 - `grid`: occupancy codes, headings, voxel indexing and the traversal of a line of flight;
 - `flight`: safe flight -- known-free space, closest approach, intents, collisions;
+- `vectors`: 3-vector arithmetic that NumPy and JAX evaluate to the same bits;
 - `layout`: the policy's input columns (per candidate and per robot);
 - `protocol`: the radio message formats and their version.
 """
