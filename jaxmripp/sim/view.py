@@ -89,8 +89,8 @@ def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array,
     voxel indices and codes from `_marked_map`, OCCUPIED outside the grid."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
-    flat = (jnp.clip(x, 0, size - 1) * size + jnp.clip(y, 0, size - 1)) * size \
-        + jnp.clip(z, 0, size - 1)
+    flat = geometry.linear_index(jnp.stack([jnp.clip(v, 0, size - 1) for v in (x, y, z)], -1),
+                                 size)
     return flat, jnp.where(inside, take_flat(marked, flat), jnp.int8(OCCUPIED))
 
 

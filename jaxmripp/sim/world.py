@@ -50,12 +50,11 @@ class World:
               target_valid: jax.Array) -> World:
         """The world with these truths and the faces derived from them (build a changed
         world anew rather than `replace` a truth, so the faces follow)."""
-        world = cls(height=height, target_voxel=target_voxel, target_valid=target_valid,
-                    target_open=jnp.zeros((*target_valid.shape, len(FACES)), bool))
         # A face is open where the voxel beyond it is not a building: out of the grid,
         # above a roof, or beside a shorter column.
         beside = target_voxel[..., None, :] + jnp.asarray(FACES)
-        return world.replace(target_open=~occupied(world, beside))
+        return cls(height=height, target_voxel=target_voxel, target_valid=target_valid,
+                   target_open=~_in_building(height, beside))
 
     @property
     def n_targets(self) -> jax.Array:
@@ -230,10 +229,14 @@ def generate(key: chex.PRNGKey, cfg: WorldConfig) -> World:
 
 def occupied(world: World, voxel: jax.Array) -> jax.Array:
     """(..., 3) int voxels -> (...,) bool: inside a building. Out-of-grid voxels are free."""
-    size = world.height.shape[-1]
+    return _in_building(world.height, voxel)
+
+
+def _in_building(height: jax.Array, voxel: jax.Array) -> jax.Array:
+    size = height.shape[-1]
     x, y, z = (voxel[..., k] for k in range(3))  # per axis: no small trailing reductions
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
-    return inside & (z < world.height[jnp.clip(x, 0, size - 1), jnp.clip(y, 0, size - 1)])
+    return inside & (z < height[jnp.clip(x, 0, size - 1), jnp.clip(y, 0, size - 1)])
 
 
 def truth_occupancy(world: World, size: int) -> jax.Array:
