@@ -12,8 +12,8 @@ vmapped alone (they are not donated, so each also pays for copying its outputs):
 sensing (ray casts + occupancy-map updates), GP updates (`feeding.feed_gps`: own pose,
 peers' poses, the trace bookkeeping for r_e / r_c), GP predictions (`observe`'s posterior mean
 and variance at every candidate, both GPs), candidates (`candidates.sample`), view gain
-(`view.view_gain` at every candidate) and the map merge (`comms.share_maps`). Shares are
-part time / step time; they need not sum to 1 (the rest is motion, radio, rewards and
+(`view.team_view_gain`, as the step computes it) and the map merge (`comms.share_maps`).
+Shares are part time / step time; they need not sum to 1 (the rest is motion, radio, rewards and
 copies, and XLA fuses differently when a part is compiled alone).
 
 Usage (from the repository root): python benchmarks/env.py [--envs 1024] [--robots 3]
@@ -79,6 +79,14 @@ def main() -> None:
     # (XLA runs parts of a step on several threads, so wall throughput on an idle machine
     # can exceed it).
     emit("env.agent_steps_per_cpu_s", envs * n / cpu_per_step, "agent-steps/cpu-s", **common)
+    # The view gain is computed only for candidates away from their robot's voxel
+    # (`view.team_view_gain`): the share of slots that are not, at the last timed step.
+    state = stepper.state
+    slot_voxel = geometry.voxel_of(state.candidates.position[:, :, ::geometry.N_HEADINGS],
+                                   params.size)
+    own_voxel = geometry.voxel_of(state.position, params.size)[:, :, None]
+    emit("env.slots_at_robot", float(jnp.mean(jnp.all(slot_voxel == own_voxel, axis=-1))),
+         "fraction", **common)
     if args.no_parts:
         return
 
@@ -107,9 +115,9 @@ def main() -> None:
         return envmod.team_candidates(key, s, comms.contacts(s.position, d.radio_range), p, d)
 
     def view_gain_part(s):
-        return jax.vmap(view.view_gain, in_axes=(0, 0, 0, None, None))(
-            s.occupancy, s.building_top, s.candidates.position[:, ::geometry.N_HEADINGS],
-            p.sensor, p.size)
+        return view.team_view_gain(s.occupancy, s.building_top,
+                                   s.candidates.position[:, ::geometry.N_HEADINGS],
+                                   s.position, p.sensor, p.size)
 
     def share_maps_part(s, d):
         contact = comms.contacts(s.position, d.radio_range)

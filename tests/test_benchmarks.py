@@ -15,8 +15,9 @@ ROOT = Path(__file__).resolve().parents[1]
 TINY_BATCH = ["--envs", "4", "--size", "20", "--repeats", "1"]
 
 SCRIPTS = {  # script: (arguments, figures it must print)
-    "env.py": (TINY_BATCH, ["env.agent_steps_per_s", "env.share_candidates",
-                            "env.share_view_gain", "env.share_share_maps", "env.share_gps"]),
+    "env.py": (TINY_BATCH, ["env.agent_steps_per_s", "env.slots_at_robot",
+                            "env.share_candidates", "env.share_view_gain",
+                            "env.share_share_maps", "env.share_gps"]),
     "sensing.py": (TINY_BATCH, ["sensing.robot_casts_per_s", "sensing.frustum_casts_per_s"]),
     "gp.py": ([], ["gp.step_per_s", "gp.speedup_vs_refactor", "gp.block_speedup_vs_adds"]),
     "runtime.py": ([], ["runtime.decision_ms", "runtime.map_message_bytes",

@@ -120,6 +120,70 @@ def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed, sensor)
     np.testing.assert_allclose(np.asarray(facade), expected[..., 1], atol=1e-6)
 
 
+def _team_scene(seed, robots=4, slots=6):
+    """Random maps, tops and candidate positions; some slots sit in their robot's voxel (as
+    padding does), the rest elsewhere."""
+    rng = np.random.default_rng(seed)
+    occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(robots, G, G, G),
+                           p=[0.5, 0.45, 0.05]).astype(np.int8)
+    top = np.stack([brute_tops(o) for o in occupancy])
+    origin = rng.uniform(0, 1, (robots, 3)).astype(np.float32)
+    position = rng.uniform(0, 1, (robots, slots, 3)).astype(np.float32)
+    at_robot = rng.uniform(size=(robots, slots)) < 0.5
+    position[at_robot] = np.broadcast_to(origin[:, None], position.shape)[at_robot]
+    # Another point of the robot's own voxel takes the same gain.
+    position[0, 0] = (np.floor(origin[0] * G) + 0.75) / G
+    return occupancy, top, position, origin
+
+
+def _robot_by_robot(occupancy, top, position, sensor=SENSOR):
+    return [np.stack([np.asarray(gain(o, t, p, sensor, G)[k])
+                      for o, t, p in zip(occupancy, top, position)]) for k in range(2)]
+
+
+@pytest.mark.parametrize("sensor", [SENSOR, SEE_THROUGH])
+def test_team_gain_equals_the_gain_robot_by_robot_also_under_nested_vmaps(sensor):
+    scenes = [_team_scene(seed) for seed in range(6)]
+    team = jax.jit(view.team_view_gain, static_argnums=(4, 5))
+    for occupancy, top, position, origin in scenes[:2]:
+        got = team(occupancy, top, position, origin, sensor, G)
+        for g, want in zip(got, _robot_by_robot(occupancy, top, position, sensor)):
+            np.testing.assert_array_equal(np.asarray(g), want)
+    # Two vmapped levels (as a sweep over an env batch): the batch folds into one list.
+    stacked = [np.stack(x).reshape(3, 2, *x[0].shape) for x in zip(*scenes)]
+    nested = jax.jit(jax.vmap(jax.vmap(lambda o, t, p, r: view.team_view_gain(
+        o, t, p, r, sensor, G))))
+    got = nested(*stacked)
+    for i in range(3):
+        for j in range(2):
+            occupancy, top, position, _ = scenes[2 * i + j]
+            for g, want in zip(got, _robot_by_robot(occupancy, top, position, sensor)):
+                np.testing.assert_array_equal(np.asarray(g)[i, j], want)
+
+
+def test_team_gain_with_every_or_no_slot_away_and_robot_by_robot_beyond_flat_indices(
+        monkeypatch):
+    occupancy, top, position, origin = _team_scene(7, robots=3, slots=5)
+    want = _robot_by_robot(occupancy, top, position)
+    # Every slot away from its robot's voxel; every slot in it; a mix.
+    origin_far = np.full_like(origin, 0.999)
+    away = np.where(np.floor(position * G) == np.floor(origin_far[:, None] * G), 0.0, position)
+    cases = [(away, origin_far), (np.broadcast_to(origin[:, None], position.shape), origin),
+             (position, origin)]
+    for pos, org in cases:
+        expected = _robot_by_robot(occupancy, top, pos)
+        for g, e in zip(view.team_view_gain(occupancy, top, pos, org, SENSOR, G), expected):
+            np.testing.assert_array_equal(np.asarray(g), e)
+    # Where one flat index over all maps would overflow int32, robot by robot.
+    monkeypatch.setattr(view, "_FLAT_LIMIT", G**3)
+    view._team_gains.cache_clear()
+    try:
+        for g, e in zip(view.team_view_gain(occupancy, top, position, origin, SENSOR, G), want):
+            np.testing.assert_array_equal(np.asarray(g), e)
+    finally:
+        view._team_gains.cache_clear()
+
+
 def test_gain_in_a_large_world_equals_the_runtime():
     """At G = 125 the weight totals pass 2^15 (the packed one-accumulator sum no longer
     fits): the JAX gain still equals the NumPy runtime's, pose by pose."""

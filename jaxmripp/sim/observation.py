@@ -72,9 +72,14 @@ def view_columns(occupancy: jax.Array, top: jax.Array, position: jax.Array, cost
     """One robot's VIEW columns (view_unknown, view_facade and both per unit of cost),
     (L, 4), for its map (G, G, G), building tops (G, G) and candidates: positions (L, 3),
     which come in groups of the N_HEADINGS headings of one position, and costs (L,)."""
-    unknown, facade = view.view_gain(occupancy, top, position[::geometry.N_HEADINGS], sensor,
-                                     size)
-    unknown, facade = unknown.reshape(-1), facade.reshape(-1)
+    gains = view.view_gain(occupancy, top, position[::geometry.N_HEADINGS], sensor, size)
+    return _stacked_view_columns(gains, cost, shell_outer)
+
+
+def _stacked_view_columns(gains, cost: jax.Array, shell_outer: float) -> jax.Array:
+    """(view_unknown, view_facade), each (..., K, N_HEADINGS), and costs (..., L) -> the
+    VIEW columns (..., L, 4)."""
+    unknown, facade = (g.reshape(cost.shape) for g in gains)
     return jnp.stack([unknown, facade, view.per_cost(unknown, cost, shell_outer),
                       view.per_cost(facade, cost, shell_outer)], axis=-1)
 
@@ -97,9 +102,9 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
-    gain_columns = jax.vmap(view_columns, in_axes=(0, 0, 0, 0, None, None, None))(
-        state.occupancy, state.building_top, c.position, c.cost, params.sensor, params.size,
-        shell)
+    gain_columns = _stacked_view_columns(view.team_view_gain(
+        state.occupancy, state.building_top, c.position[:, ::geometry.N_HEADINGS],
+        state.position, params.sensor, params.size), c.cost, shell)
     peers = jax.vmap(view.peer_distance, in_axes=(0, None, 0, None))(
         c.position, state.position, state.heard, shell)
     features = jnp.concatenate([

@@ -5,9 +5,13 @@ Per robot and step the gain costs K * 4 * R * S lookups (K candidate positions, 
 headings, R rays, S samples) in the map with facade marked, at static offsets from the
 candidate's voxel; the four headings of a position share its voxel. The clear-line test
 runs over the S distances as S whole-array steps instead of a scan over a trailing axis.
+The env scores a whole batch at once (`team_view_gain`): only candidates away from their
+robot's voxel are computed, listed across the batch.
 """
 
 from __future__ import annotations
+
+import functools
 
 import jax
 import jax.numpy as jnp
@@ -62,17 +66,18 @@ def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
 
 
-def _marked_map(occupancy: jax.Array, top: jax.Array, sensor: SensorConfig,
-                size: int) -> jax.Array:
+def _marked_map(occupancy: jax.Array, near: jax.Array, sensor: SensorConfig, size: int,
+                zero: jax.Array | int = 0) -> jax.Array:
     """The map as the gain reads it, flat (G**3,) int8: FACADE for unknown facade voxels
     and, without occlusion, known buildings marked FREE (then only leaving the grid,
-    coded OCCUPIED by `_codes`, stops a ray). XLA fuses it into the reads of `_codes`:
-    each sample reads its voxel's code and its column's facade top."""
-    near = facade_tops(top, sensor)[:, :, None]
-    height = jnp.arange(size, dtype=jnp.int8)[None, None, :]
+    coded OCCUPIED by `_codes`, stops a ray); `near` are the `facade_tops`. XLA fuses it
+    into the reads of `_codes`: each sample reads its voxel's code and its column's facade
+    top. (`zero`, an int8 0, serves `_team_gains`' loop.)"""
+    near = near[:, :, None]
+    height = (jnp.arange(size, dtype=jnp.int8) | zero)[None, None, :]
     known = occupancy if sensor.gain_occlusion else \
         jnp.where(occupancy == OCCUPIED, jnp.int8(FREE), occupancy)
-    return jnp.where((occupancy == UNKNOWN) & (near > 0) & (height <= near),
+    return jnp.where((occupancy == UNKNOWN) & (near > zero) & (height <= near),
                      jnp.int8(FACADE), known).reshape(-1)
 
 
@@ -83,40 +88,39 @@ def _sample_major(sensor: SensorConfig, size: int) -> tuple[np.ndarray, np.ndarr
     return np.moveaxis(offsets, 2, 1), weights
 
 
-def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array,
-           size: int) -> tuple[jax.Array, jax.Array]:
+def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array, size: int,
+           base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
-    voxel indices and codes from `_marked_map`, OCCUPIED outside the grid."""
+    voxel indices and codes from `_marked_map`, OCCUPIED outside the grid. `base` (same
+    leading shape as camera, or 0) offsets the lookup where `marked` holds several maps."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
     flat = geometry.linear_index(jnp.stack([jnp.clip(v, 0, size - 1) for v in (x, y, z)], -1),
                                  size)
-    return flat, jnp.where(inside, take_flat(marked, flat), jnp.int8(OCCUPIED))
+    return flat, jnp.where(inside, take_flat(marked, flat + base), jnp.int8(OCCUPIED))
 
 
-def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
-              sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
-    """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
-    (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
+def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: int,
+               base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
+    """Camera voxels (K, 3) -> the integer sums (unknown, facade), each (K, 4) int32, of
+    the gain samples' weights; (K,) `base` as in `_codes`."""
     offsets, weights = _sample_major(sensor, size)
     rays = spec.RAYS_PER_SIDE**2
     # Samples (K, 4 * R) at one distance at a time, their voxels computed where they are
     # read: XLA then fuses the whole sum into one pass, where (S, K * 4 * R) coordinate
     # arrays would be written to memory and read back.
     per_distance = np.moveaxis(offsets, 1, 0).reshape(len(weights), 1, -1, 3)
-    marked = _marked_map(occupancy, top, sensor, size)
-    camera = geometry.voxel_of(position, size)[:, None, :]
-    total = rays * int(weights.sum())
-    scale = np.float32(1) / np.float32(total)
+    camera = camera[:, None, :]
+    base = jnp.asarray(base)[..., None]
     # Integer sums, exact in any order. While both totals fit 15 bits (ranges up to about
     # 75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
     # above, so each sample costs one accumulation instead of two.
-    packed = total < 1 << 15
-    unknown_sum = jnp.zeros((position.shape[0], 4 * rays), jnp.int32)
+    packed = rays * int(weights.sum()) < 1 << 15
+    unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
     clear = jnp.ones(unknown_sum.shape, bool)
     for s, w in enumerate(weights.astype(int)):
-        _, code = _codes(marked, camera, per_distance[s], size)
+        _, code = _codes(marked, camera, per_distance[s], size, base)
         unknown = clear & ((code == UNKNOWN) | (code == FACADE))
         facade = clear & (code == FACADE)
         if packed:
@@ -126,12 +130,114 @@ def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0)
             facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
         clear = clear & (code != OCCUPIED)
-    unknown_sum = unknown_sum.reshape(position.shape[0], 4, rays).sum(-1)
+    unknown_sum = unknown_sum.reshape(camera.shape[0], 4, rays).sum(-1)
     if packed:
-        unknown_sum, facade_sum = unknown_sum & 0xFFFF, unknown_sum >> 16
-    else:
-        facade_sum = facade_sum.reshape(position.shape[0], 4, rays).sum(-1)
-    return unknown_sum.astype(jnp.float32) * scale, facade_sum.astype(jnp.float32) * scale
+        return unknown_sum & 0xFFFF, unknown_sum >> 16
+    return unknown_sum, facade_sum.reshape(camera.shape[0], 4, rays).sum(-1)
+
+
+def _scaled(sums: tuple[jax.Array, jax.Array], sensor: SensorConfig,
+            size: int) -> tuple[jax.Array, jax.Array]:
+    """Integer weight sums -> the gains, fractions of the largest possible sum."""
+    _, weights = _sample_major(sensor, size)
+    scale = np.float32(1) / np.float32(spec.RAYS_PER_SIDE**2 * int(weights.sum()))
+    return tuple(total.astype(jnp.float32) * scale for total in sums)
+
+
+def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
+              sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
+    """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
+    (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
+    marked = _marked_map(occupancy, facade_tops(top, sensor), sensor, size)
+    camera = geometry.voxel_of(position, size)
+    return _scaled(_gain_sums(marked, camera, sensor, size), sensor, size)
+
+
+def team_view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
+                   origin: jax.Array, sensor: SensorConfig,
+                   size: int) -> tuple[jax.Array, jax.Array]:
+    """`view_gain` for a team: maps (B, G, G, G), tops (B, G, G), positions (B, K, 3) and
+    each robot's own position (B, 3) -> (B, K, 4) each, equal to `view_gain` per robot.
+
+    The gain depends on the camera voxel only, and the positions that share the robot's
+    voxel (padding candidates sit at the robot) take its gain, computed once. Under `vmap`
+    the batch folds into B (`_team_gains`), so the positions that need their own gain are
+    gathered across the whole batch and computed in chunks, as many as there are: the work
+    follows the candidates there are rather than the slots.
+    """
+    unknown, facade = _team_gains(sensor, size)(occupancy, top, position, origin)
+    return _scaled((unknown, facade), sensor, size)
+
+
+_CHUNKS = 32  # the needed positions are computed in chunks of 1 / _CHUNKS of the slots
+_FLAT_LIMIT = 2**31  # flat indices into all maps at once must stay below this (int32)
+
+
+def _listed_sums(occupancy, near, camera, base, needed, sensor: SensorConfig, size: int):
+    """The gain sums of the needed entries (P,) in their order, each (P, 4) int32 (rows
+    past their count are 0): computed chunk by chunk, only as many chunks as are needed."""
+    chunk = -(-needed.shape[0] // _CHUNKS)
+    (listed,) = jnp.nonzero(needed, size=chunk * _CHUNKS, fill_value=0)
+    count = jnp.sum(needed, dtype=jnp.int32)
+
+    def one_chunk(i, carry):
+        # The marked maps must be built where they are read, inside the loop: XLA hoists
+        # what does not change between iterations out of the loop, which would write all
+        # B maps (or a predicate on them) out whole. `lowest` stays 0 (min with i >= 0),
+        # which XLA cannot prove, so the maps' terms read through it vary with the loop.
+        sums, lowest = carry
+        zero = lowest.astype(jnp.int8)
+        marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None, None))(
+            occupancy | zero, near, sensor, size, zero).reshape(-1)
+        at = jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk)
+        part = _gain_sums(marked, camera[at], sensor, size, base[at])
+        return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
+                     for s, p in zip(sums, part)), jnp.minimum(lowest, i)
+
+    empty = jnp.zeros((chunk * _CHUNKS, geometry.N_HEADINGS), jnp.int32)
+    sums, _ = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk,
+                                ((empty, empty), jnp.int32(0)))
+    return sums
+
+
+@functools.lru_cache(maxsize=None)
+def _team_gains(sensor: SensorConfig, size: int):
+    """The integer sums of `team_view_gain` as a function of arrays only, batched by folding
+    (a custom_vmap needs its static arguments closed over)."""
+
+    @jax.custom_batching.custom_vmap
+    def gains(occupancy, top, position, origin):
+        robots, slots = position.shape[:2]
+        near = jax.vmap(facade_tops, in_axes=(0, None))(top, sensor)
+        if robots * size**3 >= _FLAT_LIMIT:  # robot by robot, every slot
+            marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None))(occupancy, near,
+                                                                       sensor, size)
+            return jax.vmap(lambda m, c: _gain_sums(m, c, sensor, size))(
+                marked, geometry.voxel_of(position, size))
+        # Each robot's slots, then its own voxel; a slot needs its own gain unless it is in
+        # that voxel.
+        own = geometry.voxel_of(origin, size)[:, None, :]
+        camera = jnp.concatenate([geometry.voxel_of(position, size), own], axis=1)
+        needed = jnp.concatenate([jnp.any(camera[:, :slots] != own, axis=-1),
+                                  jnp.ones((robots, 1), bool)], axis=1)
+        base = jnp.repeat(jnp.arange(robots, dtype=jnp.int32) * size**3, slots + 1)
+        sums = _listed_sums(occupancy, near, camera.reshape(-1, 3), base, needed.reshape(-1),
+                            sensor, size)
+        # Where each slot's sums were listed: at its own rank, or at its robot's voxel's.
+        rank = (jnp.cumsum(needed.reshape(-1)) - 1).reshape(robots, slots + 1)
+        source = jnp.where(needed, rank, rank[:, -1:])[:, :slots]
+        return tuple(s[source] for s in sums)
+
+    @gains.def_vmap
+    def gains_vmap(axis_size, in_batched, occupancy, top, position, origin):
+        args = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
+                for x, b in zip((occupancy, top, position, origin), in_batched)]
+        robots = args[2].shape[1]
+        folded = [x.reshape(axis_size * robots, *x.shape[2:]) for x in args]
+        return tuple(s.reshape(axis_size, robots, *s.shape[1:]) for s in gains(*folded)), \
+            (True, True)
+
+    return gains
 
 
 def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
@@ -140,7 +246,7 @@ def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     int32, G**3 for the other samples: the part of the map that pose would reveal."""
     offsets, _ = _sample_major(sensor, size)
     camera = geometry.voxel_of(position, size)
-    flat, code = _codes(_marked_map(occupancy, top, sensor, size), camera,
+    flat, code = _codes(_marked_map(occupancy, facade_tops(top, sensor), sensor, size), camera,
                         jnp.asarray(offsets)[heading], size)  # (S, R)
     blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
     unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
