@@ -230,6 +230,8 @@ def _team_gains(sensor: SensorConfig, size: int):
 
     @gains.def_vmap
     def gains_vmap(axis_size, in_batched, occupancy, top, position, origin):
+        # An argument without the axis is broadcast: for maps that is a copy per entry,
+        # so the env vmaps maps and candidates together.
         args = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
                 for x, b in zip((occupancy, top, position, origin), in_batched)]
         robots = args[2].shape[1]
