@@ -10,6 +10,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxmripp.spec import vectors
 from jaxmripp.spec.grid import (FREE, HEADING_ANGLES, HEADING_VECTORS, N_HEADINGS,  # noqa: F401
                                 OCCUPIED, UNKNOWN, traversal_steps)
 
@@ -29,14 +30,6 @@ def inside_world(position: jnp.ndarray) -> jnp.ndarray:
     return jnp.all((position >= 0.0) & (position <= 1.0), axis=-1)
 
 
-
-def _rounded(x: jnp.ndarray) -> jnp.ndarray:
-    """x, materialised as a float32: XLA:CPU would otherwise fuse the product into the
-    subtraction after it (one rounding instead of two) and visit other voxels than the
-    spec (and the runtime) at exact ties. A select on NaN is not folded away."""
-    return jnp.where(jnp.isnan(x), 0.0, x)
-
-
 def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
              flat: bool = False) -> tuple[jnp.ndarray, jnp.ndarray, jnp.ndarray]:
     """(3,), (3,) -> voxels (V, 3) int32 (with `flat`: (V,) their `linear_index`), entry
@@ -53,8 +46,11 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
     g = jnp.float32(size)
     # Per-axis scalars throughout: XLA:CPU does not vectorise reductions over a trailing
     # axis of 3.
-    s = [_rounded(start[k].astype(jnp.float32) * g) for k in range(3)]
-    e = [_rounded(end[k].astype(jnp.float32) * g) for k in range(3)]
+    # Positions scaled to voxels and rounded on their own: XLA:CPU would otherwise fuse
+    # the product into the subtraction after it (one rounding instead of two) and visit
+    # other voxels than the spec (and the runtime) at exact ties.
+    s = [vectors.rounded(start[k].astype(jnp.float32) * g, jnp) for k in range(3)]
+    e = [vectors.rounded(end[k].astype(jnp.float32) * g, jnp) for k in range(3)]
     d = [e[k] - s[k] for k in range(3)]
     step = [jnp.sign(d[k]).astype(jnp.int32) for k in range(3)]
     safe_d = [jnp.where(d[k] == 0, 1.0, d[k]) for k in range(3)]

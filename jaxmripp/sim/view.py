@@ -47,6 +47,7 @@ def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Arra
 
 
 def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
+    """`raise_tops` with a cast's observed voxels and codes."""
     return raise_tops(top, cast.voxels, cast.values)
 
 
@@ -88,6 +89,12 @@ def _sample_major(sensor: SensorConfig, size: int) -> tuple[np.ndarray, np.ndarr
     return np.moveaxis(offsets, 2, 1), weights
 
 
+def _total_weight(sensor: SensorConfig, size: int) -> int:
+    """The largest possible gain sum: every sample of every ray of a heading."""
+    _, weights = _sample_major(sensor, size)
+    return spec.RAYS_PER_SIDE**2 * int(weights.sum())
+
+
 def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array, size: int,
            base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
@@ -115,7 +122,7 @@ def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size:
     # Integer sums, exact in any order. While both totals fit 15 bits (ranges up to about
     # 75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
     # above, so each sample costs one accumulation instead of two.
-    packed = rays * int(weights.sum()) < 1 << 15
+    packed = _total_weight(sensor, size) < 1 << 15
     unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
     clear = jnp.ones(unknown_sum.shape, bool)
@@ -139,8 +146,7 @@ def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size:
 def _scaled(sums: tuple[jax.Array, jax.Array], sensor: SensorConfig,
             size: int) -> tuple[jax.Array, jax.Array]:
     """Integer weight sums -> the gains, fractions of the largest possible sum."""
-    _, weights = _sample_major(sensor, size)
-    scale = np.float32(1) / np.float32(spec.RAYS_PER_SIDE**2 * int(weights.sum()))
+    scale = np.float32(1) / np.float32(_total_weight(sensor, size))
     return tuple(total.astype(jnp.float32) * scale for total in sums)
 
 
