@@ -112,4 +112,10 @@ def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
                                 merged_tops)
         return merged, merged_tops
 
-    return jax.lax.fori_loop(0, n, hear, (occupancy, tops))
+    # Unrolled, the peers' reads fuse into one pass over the maps, written once; a loop
+    # writes every map once per peer. Large teams keep the loop: one pass would read N
+    # maps per voxel at once, more streams than the prefetchers follow.
+    return jax.lax.fori_loop(0, n, hear, (occupancy, tops), unroll=n <= _FUSED_MERGE_LIMIT)
+
+
+_FUSED_MERGE_LIMIT = 8  # largest team whose map merge is one fused pass
