@@ -233,12 +233,12 @@ def _clear_distances(height, pose: _Pose, cam: _Camera, size: int) -> jax.Array:
     return jax.lax.bitcast_convert_type(first, jnp.float32).reshape(-1)
 
 
-def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear):
-    """(T,) bool: some face of the window that is turned to the camera and open to the air
-    is in sight, by the map's rule for building voxels applied to the face centre q: the
-    ray nearest q's direction gets within `_SURFACE` of q. (Aiming at faces rather than
-    the voxel centre matters for walls seen at an angle, whose centre rays enter through
-    the neighbouring voxel.)"""
+def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear, tested):
+    """(T,) bool: the window is among `tested` (T,) bool and some face of it that is turned
+    to the camera and open to the air is in sight, by the map's rule for building voxels
+    applied to the face centre q: the ray nearest q's direction gets within `_SURFACE` of
+    q. (Aiming at faces rather than the voxel centre matters for walls seen at an angle,
+    whose centre rays enter through the neighbouring voxel.)"""
     n = cam.n
     x, y, z = (world.target_voxel[:, k] for k in range(3))
     rel_centre = [(v - c).astype(jnp.float32) for v, c in zip((x, y, z), (pose.x, pose.y, pose.z))]
@@ -254,11 +254,12 @@ def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear):
         per_cell = (n / 2) / (cam.tan * jnp.maximum(rel[0] * fx + rel[1] * fy, 1e-3))
         cell = lambda s: jnp.clip(jnp.floor(s * per_cell + n / 2), 0, n - 1).astype(jnp.int32)
         reach = take_flat(clear, cell(rel[0] * rx + rel[1] * ry) * n + cell(rel[2])) + _SURFACE
-        in_sight.append((rel[axis] * toward[axis] < 0) & open_air[axis]
+        in_sight.append(tested & (rel[axis] * toward[axis] < 0) & open_air[axis]
                         & (reach * reach >= sum(r * r for r in rel)))
-    # A reduction, which XLA materialises once; an elementwise `or` would be recomputed
-    # inside each of the consumers of `seen` (rewards, discoveries, the utility).
-    return jnp.any(jnp.stack(in_sight), axis=0)
+    # An integer reduction, which XLA materialises once: the consumers of `seen` (rewards,
+    # discoveries, the utility) would each recompute an elementwise `or`, and a boolean
+    # `any` over three faces XLA rewrites into one.
+    return jnp.sum(jnp.stack(in_sight).astype(jnp.int32), axis=0) > 0
 
 
 @jax.custom_batching.custom_vmap
@@ -317,13 +318,13 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
     if sensor.model == "raycast":
         clear = _clear_distances(height, pose, cam, size)
         keep &= cam.view_distance <= take_flat(clear, cam.view_ray) + jnp.where(solid, _SURFACE, 0.0)
-        seen = _in_raycast_view(ahead, right, offset[2], cam.tan, cam.reach) & _windows_seen(
-            world, pose, cam, clear)
+        seen = _windows_seen(world, pose, cam, clear, world.target_valid & _in_raycast_view(
+            ahead, right, offset[2], cam.tan, cam.reach))
     else:
-        seen = _in_frustum(ahead, right, offset[2], depth)
+        seen = world.target_valid & _in_frustum(ahead, right, offset[2], depth)
 
     flat = (voxel[0] * size + voxel[1]) * size + voxel[2]
-    return CastResult(seen=seen & world.target_valid,
+    return CastResult(seen=seen,
                       voxels=jnp.where(keep, flat, size**3).astype(jnp.int32), values=values)
 
 
