@@ -90,6 +90,9 @@ def _reachable(contact: jax.Array) -> jax.Array:
     return reach > 0
 
 
+_FUSED_MERGE_LIMIT = 8  # largest team whose map merge is one fused pass
+
+
 def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
                relay: bool) -> tuple[jax.Array, jax.Array]:
     """The map merge of `jaxmripp.spec.sharing`: (N, G, G, G) int8 maps, (N, G, G) int8
@@ -117,5 +120,3 @@ def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
     # maps per voxel at once, more streams than the prefetchers follow.
     return jax.lax.fori_loop(0, n, hear, (occupancy, tops), unroll=n <= _FUSED_MERGE_LIMIT)
 
-
-_FUSED_MERGE_LIMIT = 8  # largest team whose map merge is one fused pass

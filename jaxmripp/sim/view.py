@@ -111,12 +111,17 @@ def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size:
                base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (K, 3) -> the integer sums (unknown, facade), each (K, 4) int32, of
     the gain samples' weights; (K,) `base` as in `_codes`."""
-    return _heading_sums(_ray_sums(marked, camera, sensor, size, base), sensor, size)
+    return _heading_sums(_ray_sums(marked, camera, sensor, size, base))
 
 
 def _ray_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: int,
-              base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
-    """`_gain_sums` per ray: (K, 4 * R) int32 each, in the layout `_heading_sums` reads."""
+              base: jax.Array | int = 0) -> tuple[jax.Array, ...]:
+    """`_gain_sums` per ray, (K, 4 * R) int32 each, in the layout `_heading_sums` reads:
+    (packed,) while both totals fit 15 bits, else (unknown, facade).
+
+    Integer sums are exact in any order. While both totals fit 15 bits (ranges up to about
+    75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
+    above, so each sample costs one accumulation instead of two."""
     offsets, weights = _sample_major(sensor, size)
     rays = spec.RAYS_PER_SIDE**2
     # Samples (K, 4 * R) at one distance at a time, their voxels computed where they are
@@ -125,6 +130,7 @@ def _ray_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: 
     per_distance = np.moveaxis(offsets, 1, 0).reshape(len(weights), 1, -1, 3)
     camera = camera[:, None, :]
     base = jnp.asarray(base)[..., None]
+    packed = _total_weight(sensor, size) < 1 << 15
     unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
     clear = jnp.ones(unknown_sum.shape, bool)
@@ -132,31 +138,21 @@ def _ray_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: 
         _, code = _codes(marked, camera, per_distance[s], size, base)
         unknown = clear & ((code == UNKNOWN) | (code == FACADE))
         facade = clear & (code == FACADE)
-        if _packed(sensor, size):
+        if packed:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0) \
                 + jnp.where(facade, jnp.int32(w << 16), 0)
         else:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0)
             facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
         clear = clear & (code != OCCUPIED)
-    return unknown_sum, facade_sum
+    return (unknown_sum,) if packed else (unknown_sum, facade_sum)
 
 
-def _packed(sensor: SensorConfig, size: int) -> bool:
-    """Integer sums are exact in any order. While both totals fit 15 bits (ranges up to
-    about 75 voxels) they share one int32, unknown weight in the low 16 bits and facade
-    weight above, so each sample costs one accumulation instead of two."""
-    return _total_weight(sensor, size) < 1 << 15
-
-
-def _heading_sums(ray_sums: tuple[jax.Array, jax.Array], sensor: SensorConfig,
-                  size: int) -> tuple[jax.Array, jax.Array]:
-    """`_ray_sums` (K, 4 * R) each -> the sums per heading, (K, 4) each."""
+def _heading_sums(ray_sums: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
+    """`_ray_sums` -> the sums (unknown, facade) per heading, (K, 4) each."""
     rays = spec.RAYS_PER_SIDE**2
-    unknown_sum, facade_sum = (x.reshape(x.shape[0], 4, rays).sum(-1) for x in ray_sums)
-    if _packed(sensor, size):
-        return unknown_sum & 0xFFFF, unknown_sum >> 16
-    return unknown_sum, facade_sum
+    sums = tuple(x.reshape(x.shape[0], 4, rays).sum(-1) for x in ray_sums)
+    return (sums[0] & 0xFFFF, sums[0] >> 16) if len(sums) == 1 else sums
 
 
 def _scaled(sums: tuple[jax.Array, jax.Array], sensor: SensorConfig,
@@ -200,8 +196,7 @@ def _listed_sums(occupancy, near, camera, base, needed, sensor: SensorConfig, si
     past their count are 0): computed chunk by chunk, only as many chunks as are needed.
 
     The loop keeps the sums per ray and adds up the rays after it: each chunk is then one
-    elementwise pass, which XLA:CPU runs faster than a reduction over the short ray axis.
-    (With packed sums the facade sums stay zero.)"""
+    elementwise pass, which XLA:CPU runs faster than a reduction over the short ray axis."""
     chunk = -(-needed.shape[0] // _CHUNKS)
     (listed,) = jnp.nonzero(needed, size=chunk * _CHUNKS, fill_value=0)
     count = jnp.sum(needed, dtype=jnp.int32)
@@ -220,10 +215,12 @@ def _listed_sums(occupancy, near, camera, base, needed, sensor: SensorConfig, si
         return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
                      for s, p in zip(sums, part)), jnp.minimum(lowest, i)
 
-    empty = jnp.zeros((chunk * _CHUNKS, geometry.N_HEADINGS * spec.RAYS_PER_SIDE**2), jnp.int32)
+    shapes = jax.eval_shape(functools.partial(_ray_sums, sensor=sensor, size=size),
+                            occupancy.reshape(-1), camera[:chunk], base=base[:chunk])
+    empty = tuple(jnp.zeros((chunk * _CHUNKS, *x.shape[1:]), x.dtype) for x in shapes)
     sums, _ = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk,
-                                ((empty, empty), jnp.int32(0)))
-    return _heading_sums(sums, sensor, size)
+                                (empty, jnp.int32(0)))
+    return _heading_sums(sums)
 
 
 @functools.lru_cache(maxsize=None)
