@@ -9,7 +9,7 @@ load, so the CPU time per step and `env.agent_steps_per_cpu_s` are printed too).
 
 The same run times the step's parts separately on the same batch, each jitted and
 vmapped alone (they are not donated, so each also pays for copying its outputs):
-sensing (ray casts + occupancy-map updates), GP updates (`feeding.feed_gps`: own pose,
+sensing (ray casts + team-map updates), GP updates (`feeding.feed_gps`: own pose,
 peers' poses, the trace bookkeeping for r_e / r_c), GP predictions (`observe`'s posterior mean
 and variance at every candidate, both GPs), candidates (`candidates.sample`), view gain
 (`view.team_view_gain`, as the step computes it) and the map merge (`comms.share_maps`).
@@ -34,7 +34,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp import config  # noqa: E402
-from jaxmripp.sim import comms, feeding, geometry, gp, sensing, view  # noqa: E402
+from jaxmripp.sim import comms, feeding, geometry, gp, maps, sensing, view  # noqa: E402
 from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
@@ -91,14 +91,13 @@ def main() -> None:
         return
 
     # Parts of the step, each on the same batch (the current state). Parts that rewrite
-    # large state (occupancy maps, GPs) get it donated and fed back, like the step does.
+    # large state (the team map, GPs) get it donated and fed back, like the step does.
     p = params
 
     def sensing_part(s):
         casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
             s.world, s.position, s.heading, p.sensor, p.size)
-        occupancy = jax.vmap(sensing.update_occupancy)(s.occupancy, casts)
-        return s.replace(occupancy=occupancy), casts.seen
+        return s.replace(team_map=maps.observe(s.team_map, casts.voxels)), casts.seen
 
     def gp_update_part(s):
         s, r_e, r_c = feeding.feed_gps(s, p)
@@ -121,7 +120,7 @@ def main() -> None:
 
     def share_maps_part(s, d):
         contact = comms.contacts(s.position, d.radio_range)
-        return comms.share_maps(s.occupancy, s.building_top, contact, p.radio.relay)
+        return comms.share_maps(s.team_map, s.building_top, contact, p.radio.relay)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),

@@ -1,4 +1,5 @@
-"""Sensing throughput: cast + occupancy update for envs x robots casts per call.
+"""Sensing throughput: cast + team-map update (`sim.maps.observe`) for envs x robots casts
+per call.
 
 Run from the repository root: `python benchmarks/sensing.py [--envs 1024] [--size 50]`.
 Prints JSON lines; `sensing.robot_casts_per_s` is the default ray-cast camera.
@@ -17,18 +18,18 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
 from common import batch_arguments, emit, median_cpu_seconds, median_seconds  # noqa: E402
-from jaxmripp.sim import sensing, world  # noqa: E402
+from jaxmripp.sim import maps, sensing, world  # noqa: E402
 from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
 
 
-def sense_step(worlds, position, heading, occupancy, sensor, size):
-    """(E,) worlds, (E, N, 3) positions, (E, N) headings, (E, N, G, G, G) maps."""
-    def per_env(w, pos, head, occ):
+def sense_step(worlds, position, heading, team_map, sensor, size):
+    """(E,) worlds, (E, N, 3) positions, (E, N) headings, (E, W, G, G, G) team maps."""
+    def per_env(w, pos, head, team):
         cast = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))
         casts = cast(w, pos, head, sensor, size)
-        return jax.vmap(sensing.update_occupancy)(occ, casts), sensing.utility(casts)
+        return maps.observe(team, casts.voxels), sensing.utility(casts)
 
-    return jax.vmap(per_env)(worlds, position, heading, occupancy)
+    return jax.vmap(per_env)(worlds, position, heading, team_map)
 
 
 def main() -> None:
@@ -46,11 +47,10 @@ def main() -> None:
     for model in ("raycast", "frustum"):
         sensor = dataclasses.replace(SensorConfig(), model=model)
         step = jax.jit(sense_step, static_argnums=(4, 5), donate_argnums=3)
-        state = {"occ": jnp.broadcast_to(sensing.empty_occupancy(size),
-                                         (envs, robots, size, size, size)).copy()}
+        state = {"team": jax.jit(jax.vmap(lambda w: maps.empty(w.height, robots)))(worlds)}
 
         def run():
-            state["occ"], seen = step(worlds, position, heading, state["occ"], sensor, size)
+            state["team"], seen = step(worlds, position, heading, state["team"], sensor, size)
             return seen
 
         seconds = median_seconds(run, repeats=args.repeats)

@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp.sim import comms
+from jaxmripp.sim import comms, maps
 
 exchange = jax.jit(comms.exchange, static_argnames="relay")
 contacts = jax.jit(comms.contacts)
@@ -181,33 +181,61 @@ share_maps = jax.jit(comms.share_maps, static_argnames="relay")
 
 
 def consistent_maps(rng, n, size):
-    """n maps that each know a random part of one random truth (FREE / OCCUPIED)."""
+    """n maps that each know a random part of one random truth (FREE / OCCUPIED), as int8
+    maps and as the team map that holds them (`jaxmripp.sim.maps`)."""
     truth = rng.choice([0, 2], size=(size, size, size)).astype(np.int8)
     known = rng.random((n, size, size, size)) < 0.3
-    maps = np.where(known, truth[None], 1).astype(np.int8)
+    robot_maps = np.where(known, truth[None], 1).astype(np.int8)
     column_top = lambda m: np.max(np.where(m == 2, np.arange(size) + 1, 0), axis=-1)
-    return truth, maps, np.stack([column_top(m) for m in maps]).astype(np.int8), column_top
+    tops = np.stack([column_top(m) for m in robot_maps]).astype(np.int8)
+    return truth, robot_maps, team_map_of(truth, known), tops, column_top
+
+
+def team_map_of(truth, known):
+    """The team map of a truth (G, G, G) codes and known (N, G, G, G) bool, bit by bit
+    (bit 0 building, bit 1 + i robot i, eight bits per byte)."""
+    n = known.shape[0]
+    bits = np.zeros(((n + 8) // 8 * 8, *truth.shape), bool)
+    bits[0], bits[1:n + 1] = truth == 2, known
+    weights = (1 << np.arange(8)).reshape(1, 8, 1, 1, 1)
+    return (bits.reshape(-1, 8, *truth.shape) * weights).sum(axis=1).astype(np.uint8)
 
 
 @pytest.mark.parametrize("relay", [False, True])
 def test_shared_maps_are_the_union_of_what_each_robot_hears(relay):
     rng = np.random.default_rng(0)
-    truth, maps, tops, column_top = consistent_maps(rng, 3, 6)
+    truth, robot_maps, team, tops, column_top = consistent_maps(rng, 3, 6)
     contact = np.asarray(contacts(CHAIN, 0.3))  # 0-1 and 1-2 linked, 0-2 not
-    merged, merged_tops = (np.asarray(x) for x in share_maps(maps, tops, contact, relay=relay))
+    team, merged_tops = share_maps(team, tops, contact, relay=relay)
+    merged, merged_tops = np.asarray(maps.robot_maps(team, 3)), np.asarray(merged_tops)
     for i in range(3):
         sources = [i] + [k for k in range(3) if contact[i, k] or (relay and k != i)]
-        known = np.any(maps[sources] != 1, axis=0)
+        known = np.any(robot_maps[sources] != 1, axis=0)
         np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
         np.testing.assert_array_equal(merged_tops[i], column_top(merged[i]))
     # The chain's ends hear each other's maps only through the middle robot (relay).
-    assert relay == bool(np.any((maps[2] != 1) & (maps[0] == 1) & (merged[0] != 1)
-                                & (maps[1] == 1)))
+    assert relay == bool(np.any((robot_maps[2] != 1) & (robot_maps[0] == 1) & (merged[0] != 1)
+                                & (robot_maps[1] == 1)))
+
+
+@pytest.mark.parametrize("relay", [False, True])
+def test_shared_maps_of_a_large_team_match_the_union(relay):
+    """Nine robots: their bits span two bytes per voxel, merged receiver by receiver."""
+    rng = np.random.default_rng(2)
+    n = 9
+    truth, robot_maps, team, tops, _ = consistent_maps(rng, n, 4)
+    contact = rng.random((n, n)) < 0.3
+    contact = (contact | contact.T) & ~np.eye(n, dtype=bool)
+    merged = np.asarray(maps.robot_maps(share_maps(team, tops, contact, relay=relay)[0], n))
+    hears = np.asarray(comms.links(jnp.asarray(contact), relay)) | np.eye(n, dtype=bool)
+    for i in range(n):
+        known = np.any(robot_maps[hears[i]] != 1, axis=0)
+        np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
 
 
 def test_shared_maps_without_contact_change_nothing():
     rng = np.random.default_rng(1)
-    _, maps, tops, _ = consistent_maps(rng, 3, 5)
-    merged, merged_tops = share_maps(maps, tops, np.zeros((3, 3), bool), relay=False)
-    np.testing.assert_array_equal(np.asarray(merged), maps)
+    _, _, team, tops, _ = consistent_maps(rng, 3, 5)
+    merged, merged_tops = share_maps(team, tops, np.zeros((3, 3), bool), relay=False)
+    np.testing.assert_array_equal(np.asarray(merged), team)
     np.testing.assert_array_equal(np.asarray(merged_tops), tops)

@@ -95,7 +95,7 @@ def test_two_flight_values_match_a_numpy_reference(valued):
     checked = 0
     for e in range(ENVS):
         mask = obs.mask[e, 0]
-        codes = state.occupancy[e, 0].reshape(-1)
+        codes = np.asarray(state.occupancy[e, 0]).reshape(-1)
         c = {name: getattr(state.candidates, name)[e, 0] for name in ("position", "heading",
                                                                        "cost")}
         ranked = {int(j): r for r, j in enumerate(order[e]) if mask[j]}

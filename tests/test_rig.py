@@ -21,7 +21,7 @@ import pytest
 from jaxmripp import config
 from jaxmripp.evaluation import evaluate, rig
 from jaxmripp.evaluation.tree_search import Context, scores
-from jaxmripp.sim import comms, geometry
+from jaxmripp.sim import comms, geometry, maps
 from jaxmripp.sim import env as envmod
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -43,7 +43,8 @@ def _play(key, dyn, rounds):
     from the robots' corner to the rest of the world, so the line rule has work to do."""
     key_reset, key_act, key_tree = jax.random.split(key, 3)
     obs, state = envmod.reset(key_reset, PARAMS, dyn)
-    state = state.replace(occupancy=state.occupancy.at[:, WALL].set(geometry.OCCUPIED))
+    state = state.replace(team_map=maps.pack(state.occupancy.at[:, WALL].set(geometry.OCCUPIED),
+                                             maps.buildings(state.team_map).at[WALL].set(True)))
     planner = rig.rig_planner(PARAMS, ITERATIONS, DEPTH, rounds=rounds)
     _, actions = planner.act(key_act, planner.init(PARAMS.n_robots), obs, state, dyn)
     n = PARAMS.n_robots

@@ -14,7 +14,7 @@ from jaxmripp import config as cfgmod, export, pipeline
 from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
-from jaxmripp.sim import env as envmod
+from jaxmripp.sim import env as envmod, maps
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
@@ -129,7 +129,8 @@ def test_deciding_in_turn_records_the_observations_each_robot_decided_on(cfg, tr
     # Every robot hears every other and has a copy of robot 0's map and candidates, so
     # robot 1 sees robot 0's view claimed.
     twin = lambda x: x.at[:, 1:].set(x[:, :1])  # noqa: E731
-    states = states.replace(heard=jnp.ones_like(states.heard), occupancy=twin(states.occupancy),
+    states = states.replace(heard=jnp.ones_like(states.heard),
+                            team_map=maps.pack(twin(states.occupancy), maps.buildings(states.team_map)),
                             building_top=twin(states.building_top),
                             candidates=jax.tree.map(twin, states.candidates))
     obs = jax.jit(jax.vmap(envmod.observe, in_axes=(0, None)), static_argnums=1)(

@@ -13,7 +13,7 @@ import pytest
 
 from jaxmripp.config import SensorConfig, from_dict
 from jaxmripp.evaluation import baselines
-from jaxmripp.sim import claims, env, sensing, view
+from jaxmripp.sim import claims, env, maps, sensing, view
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import view as spec
 from jaxmripp.spec.layout import FEATURES
@@ -238,7 +238,8 @@ def _twins():
     _, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(0), params, dyn)
     twin = lambda x: x.at[1].set(x[0])  # noqa: E731
     state = state.replace(position=twin(state.position), heading=twin(state.heading),
-                          occupancy=twin(state.occupancy), building_top=twin(state.building_top),
+                          team_map=maps.pack(twin(state.occupancy), maps.buildings(state.team_map)),
+                          building_top=twin(state.building_top),
                           candidates=jax.tree.map(twin, state.candidates))
     assert bool(state.heard[0, 1]) and bool(state.heard[1, 0])
     return params, dyn, state, jax.jit(env.observe, static_argnums=1)(state, params)
@@ -276,7 +277,7 @@ def test_with_relay_a_robot_hears_the_claims_of_its_whole_component():
     triple = lambda x: x.at[2].set(x[0])  # noqa: E731
     chain = jnp.asarray([[1, 1, 0], [1, 1, 1], [0, 1, 1]], bool)
     state = state.replace(position=triple(state.position), heading=triple(state.heading),
-                          occupancy=triple(state.occupancy),
+                          team_map=maps.pack(triple(state.occupancy), maps.buildings(state.team_map)),
                           building_top=triple(state.building_top),
                           candidates=jax.tree.map(triple, state.candidates), heard=chain)
     obs = jax.jit(env.observe, static_argnums=1)(state, params)

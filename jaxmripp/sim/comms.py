@@ -15,7 +15,7 @@ import chex
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.spec.grid import UNKNOWN
+from jaxmripp.sim import maps
 
 
 def contacts(
@@ -90,33 +90,20 @@ def _reachable(contact: jax.Array) -> jax.Array:
     return reach > 0
 
 
-_FUSED_MERGE_LIMIT = 8  # largest team whose map merge is one fused pass
-
-
-def share_maps(occupancy: jax.Array, tops: jax.Array, contact: jax.Array,
+def share_maps(team_map: jax.Array, tops: jax.Array, contact: jax.Array,
                relay: bool) -> tuple[jax.Array, jax.Array]:
-    """The map merge of `jaxmripp.spec.sharing`: (N, G, G, G) int8 maps, (N, G, G) int8
-    building tops, (N, N) bool contacts -> merged maps and tops.
+    """The map merge of `jaxmripp.spec.sharing`: a team map (`jaxmripp.sim.maps`), (N, G, G)
+    int8 building tops, (N, N) bool contacts -> merged team map and tops.
 
-    Every robot takes, where its map is UNKNOWN, the code of the maps it hears as they
-    stood before this merge (single hop), or of its whole component (relay); known codes
-    agree with the truth, so the order peers are heard in does not matter.
-    """
-    n = occupancy.shape[0]
+    Every robot learns what the robots it hears knew before this merge (single hop), or
+    its whole component (relay); known codes agree with the truth, so what a robot learns
+    does not depend on the order it hears its peers in."""
+    n = tops.shape[0]
     chex.assert_shape(contact, (n, n))
     linked = links(contact, relay)
 
-    def hear(k, maps):
-        merged, merged_tops = maps
-        heard = linked[:, k]
-        merged = jnp.where(heard[:, None, None, None] & (merged == UNKNOWN), occupancy[k][None],
-                           merged)
-        merged_tops = jnp.where(heard[:, None, None], jnp.maximum(merged_tops, tops[k][None]),
-                                merged_tops)
-        return merged, merged_tops
+    def hear(k, merged_tops):
+        return jnp.where(linked[:, k, None, None], jnp.maximum(merged_tops, tops[k][None]),
+                         merged_tops)
 
-    # Unrolled, the peers' reads fuse into one pass over the maps, written once; a loop
-    # writes every map once per peer. Large teams keep the loop: one pass would read N
-    # maps per voxel at once, more streams than the prefetchers follow.
-    return jax.lax.fori_loop(0, n, hear, (occupancy, tops), unroll=n <= _FUSED_MERGE_LIMIT)
-
+    return maps.merge(team_map, linked), jax.lax.fori_loop(0, n, hear, tops)

@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import comms, flight, geometry, gp, lookahead, sensing, view
+from jaxmripp.sim import comms, flight, geometry, gp, lookahead, maps, sensing, view
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.geometry import FREE, N_HEADINGS, OCCUPIED
 from jaxmripp.spec.flight import SCAN_TURNS
@@ -50,7 +50,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         budget_left=jnp.full((n,), budget, jnp.float32),
         budget_initial=budget.astype(jnp.float32),
         done=jnp.zeros((n,), bool),
-        occupancy=jnp.broadcast_to(sensing.empty_occupancy(size), (n, size, size, size)),
+        team_map=maps.empty(world.height, n),
         building_top=jnp.broadcast_to(view.empty_tops(size), (n, size, size)),
         heard=jnp.zeros((n, n), bool),
         discovered=jnp.zeros(world.target_valid.shape, bool),
@@ -89,16 +89,16 @@ def _takeoff_scan(state: EnvState, params: EnvParams, dyn: DynamicParams) -> Env
     """A full turn at the start pose (jaxmripp.spec.flight): the maps and discovered windows
     of the three other headings (the start heading's cast follows in `_after_move`),
     charged SCAN_TURNS turns."""
-    occupancy, top, discovered = state.occupancy, state.building_top, state.discovered
+    team_map, top, discovered = state.team_map, state.building_top, state.discovered
     for turn in range(1, N_HEADINGS):
         heading = (state.heading + turn) % N_HEADINGS
         casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
             state.world, state.position, heading, params.sensor, params.size)
-        occupancy = jax.vmap(sensing.update_occupancy)(occupancy, casts)
+        team_map = maps.observe(team_map, casts.voxels)
         top = jax.vmap(view.raise_tops_from_cast)(top, casts)
         discovered = discovered | jnp.any(casts.seen, axis=0)
     charge = SCAN_TURNS * dyn.turn_cost
-    return state.replace(occupancy=occupancy, building_top=top, discovered=discovered,
+    return state.replace(team_map=team_map, building_top=top, discovered=discovered,
                          budget_left=jnp.maximum(state.budget_left - charge, 0.0))
 
 
@@ -157,13 +157,12 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     )
     # A robot that hit a building learns the voxel, so it does not try it again.
     bumped = jnp.where(crashed, geometry.linear_index(obstacle, size), size ** 3)
-    occupancy = jax.vmap(lambda occ, index: occ.reshape(-1).at[index].set(
-        OCCUPIED, mode="drop").reshape(occ.shape))(state.occupancy, bumped)
+    team_map = maps.observe(state.team_map, bumped[:, None])
     top = jax.vmap(view.raise_tops)(state.building_top, bumped,
                                     jnp.full((n,), OCCUPIED, jnp.int8))
     moved = state.replace(
         position=position,
-        occupancy=occupancy,
+        team_map=team_map,
         building_top=top,
         heading=jnp.where(moving, target_heading, state.heading),
         budget_left=jnp.maximum(state.budget_left - charge, 0.0),
@@ -178,7 +177,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     n, size = params.n_robots, params.size
     casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
         state.world, state.position, state.heading, params.sensor, size)
-    occupancy = jax.vmap(sensing.update_occupancy)(state.occupancy, casts)
+    team_map = maps.observe(state.team_map, casts.voxels)
     top = jax.vmap(view.raise_tops_from_cast)(state.building_top, casts)
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
@@ -200,8 +199,8 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     contact = comms.contacts(state.position, dyn.radio_range)
     know = comms.exchange(know, contact, params.radio.relay)
     if params.radio.share_maps:
-        occupancy, top = comms.share_maps(occupancy, top, contact, params.radio.relay)
-    state = state.replace(occupancy=occupancy, building_top=top, heard=contact,
+        team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
+    state = state.replace(team_map=team_map, building_top=top, heard=contact,
                           discovered=discovered, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(

@@ -357,7 +357,7 @@ def _flat_scatter(write: str):
     return scatter
 
 
-_scatter = _flat_scatter("set")
+scatter_set = _flat_scatter("set")
 scatter_max = _flat_scatter("max")
 
 
@@ -365,7 +365,7 @@ def update_occupancy(occupancy: jax.Array, result: CastResult) -> jax.Array:
     """(G, G, G) int8 map -> the map with the observed voxels set to their true codes."""
     size = occupancy.shape[0]
     chex.assert_shape(occupancy, (size, size, size))
-    return _scatter(occupancy.reshape(-1), result.voxels, result.values).reshape(occupancy.shape)
+    return scatter_set(occupancy.reshape(-1), result.voxels, result.values).reshape(occupancy.shape)
 
 
 def empty_occupancy(size: int) -> jax.Array:

@@ -8,7 +8,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import gp, world as worldmod
+from jaxmripp.sim import gp, maps, world as worldmod
 
 
 @struct.dataclass
@@ -40,7 +40,7 @@ class EnvState:
     budget_left: jax.Array  # (N,) float32
     budget_initial: jax.Array  # () float32 per-robot share of the team budget
     done: jax.Array  # (N,) bool: out of affordable candidates or out of steps
-    occupancy: jax.Array  # (N, G, G, G) int8 per-robot maps (geometry codes)
+    team_map: jax.Array  # (W, G, G, G) uint8 the robots' maps as bits (sim.maps)
     building_top: jax.Array  # (N, G, G) int8 per-robot building tops (jaxmripp.spec.view)
     heard: jax.Array  # (N, N) bool robots in radio range at the current positions
     discovered: jax.Array  # (T,) bool: found by anybody
@@ -53,6 +53,12 @@ class EnvState:
     candidates: cands.Candidates  # (N, L) the poses the current observation offers
     step: jax.Array  # () int32
     metrics: Metrics
+
+    @property
+    def occupancy(self) -> jax.Array:
+        """(..., N, G, G, G) int8 the robots' maps (geometry codes), derived from `team_map`
+        (also for states with leading batch axes)."""
+        return maps.robot_maps(self.team_map, self.position.shape[-2])
 
 
 @struct.dataclass

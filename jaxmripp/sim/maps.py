@@ -1,0 +1,130 @@
+"""The team's maps in one array: per voxel, the truth and which robots know it.
+
+A robot's map holds, per voxel, FREE, OCCUPIED or UNKNOWN (`jaxmripp.spec.grid`), and
+what it holds is always the truth: casts and bumps write what is there, and merges copy
+what peers wrote. So an environment keeps its N maps as bits: bit 0 of a voxel says
+whether it is a building, bit 1 + i whether robot i knows it, packed into W =
+`words(N)` bytes per voxel. A team map is (W, G, G, G) uint8; robot i's bit lives in word
+(1 + i) // 8. Against N bytes per voxel for N int8 maps, this reads and writes a third of
+the memory at N = 3 and lets a map merge update every robot's bits in place, one pass
+over one byte per voxel.
+
+`robot_maps` derives the int8 maps (N, G, G, G) as an elementwise function of the team
+map, which XLA fuses into the reads of the maps' readers.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxmripp.sim import sensing
+from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
+
+BUILDING = 1  # bit 0 of word 0
+_FUSED_ROBOT_LIMIT = 8  # largest team whose per-robot loops below are unrolled
+
+
+def words(n_robots: int) -> int:
+    """W: bytes per voxel for the building bit and N robots' bits."""
+    return (n_robots + 8) // 8
+
+
+def _bit_places(n_robots: int) -> tuple[np.ndarray, np.ndarray]:
+    """(word (N,), bit value (N,) uint8) of each robot's bit."""
+    place = np.arange(n_robots) + 1
+    return place // 8, (1 << (place % 8)).astype(np.uint8)
+
+
+def empty(height: jax.Array, n_robots: int) -> jax.Array:
+    """A world's column heights (G, G) -> the team map (W, G, G, G) uint8 of a team that
+    knows nothing yet: only the building bits set."""
+    size = height.shape[0]
+    solid = jnp.arange(size)[None, None, :] < height[:, :, None]
+    truth = jnp.where(solid, jnp.uint8(BUILDING), jnp.uint8(0))
+    rest = jnp.zeros((words(n_robots) - 1, size, size, size), jnp.uint8)
+    return jnp.concatenate([truth[None], rest])
+
+
+def robot_maps(team: jax.Array, n_robots: int) -> jax.Array:
+    """(..., W, G, G, G) uint8 team maps -> (..., N, G, G, G) int8 robot maps (geometry
+    codes)."""
+    word, bit = _bit_places(n_robots)
+    known = (team[..., word, :, :, :] & jnp.asarray(bit)[:, None, None, None]) != 0
+    code = jnp.where(buildings(team)[..., None, :, :, :], jnp.int8(OCCUPIED), jnp.int8(FREE))
+    return jnp.where(known, code, jnp.int8(UNKNOWN))
+
+
+def buildings(team: jax.Array) -> jax.Array:
+    """(..., W, G, G, G) team maps -> (..., G, G, G) bool the truth they hold: buildings."""
+    return (team[..., 0, :, :, :] & BUILDING) != 0
+
+
+def pack(robot_maps: jax.Array, building: jax.Array) -> jax.Array:
+    """The inverse of `robot_maps`: (..., N, G, G, G) int8 robot maps that agree with the
+    truth where they know a voxel, and the truth (..., G, G, G) bool (buildings) -> team
+    maps (..., W, G, G, G) uint8. For building states to order (tests, pictures)."""
+    n = robot_maps.shape[-4]
+    word, bit = _bit_places(n)
+    known = robot_maps != UNKNOWN
+    packed = []
+    for w in range(words(n)):
+        byte = jnp.where(building, jnp.uint8(BUILDING), jnp.uint8(0)) if w == 0 else \
+            jnp.zeros(building.shape, jnp.uint8)
+        for i in np.flatnonzero(word == w):
+            byte = byte | jnp.where(known[..., i, :, :, :], jnp.uint8(bit[i]), jnp.uint8(0))
+        packed.append(byte)
+    return jnp.stack(packed, axis=-4)
+
+
+def observe(team: jax.Array, voxels: jax.Array) -> jax.Array:
+    """Team map, each robot's observed flat voxel indices (N, V) (G**3 and beyond: none)
+    -> the team map with those voxels known to their robots.
+
+    Robot by robot: a voxel several robots saw takes each one's bit; within one robot's
+    list, repeated voxels write the same byte."""
+    n, cells = voxels.shape[0], team[0].size
+    word, bit = _bit_places(n)
+    word, bit = jnp.asarray(word, jnp.int32), jnp.asarray(bit)
+
+    def one(i, flat):
+        index = jnp.where((voxels[i] >= 0) & (voxels[i] < cells),
+                          word[i] * cells + voxels[i], team.size)
+        current = sensing.take_flat(flat, jnp.minimum(index, team.size - 1))
+        return sensing.scatter_set(flat, index, current | bit[i])
+
+    flat = jax.lax.fori_loop(0, n, one, team.reshape(-1), unroll=n <= _FUSED_ROBOT_LIMIT)
+    return flat.reshape(team.shape)
+
+
+def merge(team: jax.Array, linked: jax.Array) -> jax.Array:
+    """Team map, (N, N) bool links (i hears j) -> every robot also knows what the robots it
+    hears knew before the merge: the map merge of `jaxmripp.spec.sharing`.
+
+    A robot's new bit is whether a robot it hears (or itself) has its bit set. With one
+    word per voxel (N <= 7) that is one elementwise pass over the map, in place; larger
+    teams update one receiver's word at a time."""
+    n, count = linked.shape[0], team.shape[0]
+    word, bit = _bit_places(n)
+    heard = jnp.where(linked | jnp.eye(n, dtype=bool), jnp.asarray(bit, jnp.int32)[None, :], 0)
+    # Per receiver and word, the bits of the robots it hears (distinct bits: sum = or).
+    in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
+    masks = jnp.sum(jnp.where(in_word[None], heard[:, :, None], 0), axis=1).astype(jnp.uint8)
+
+    def hears(i) -> jax.Array:  # (G, G, G) bool
+        return jnp.any((team & masks[i][:, None, None, None]) != 0, axis=0)
+
+    if count == 1:
+        return team | functools.reduce(jnp.bitwise_or, [
+            jnp.where(hears(i), jnp.uint8(bit[i]), jnp.uint8(0)) for i in range(n)])[None]
+
+    def receive(i, merged):
+        w = jnp.asarray(word, jnp.int32)[i]
+        row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
+            | jnp.where(hears(i), jnp.asarray(bit)[i], jnp.uint8(0))
+        return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
+
+    return jax.lax.fori_loop(0, n, receive, team)
