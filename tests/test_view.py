@@ -121,11 +121,14 @@ def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed, sensor)
 
 
 def _team_scene(seed, robots=4, slots=6):
-    """Random maps, tops and candidate positions; some slots sit in their robot's voxel (as
-    padding does), the rest elsewhere."""
+    """Random maps (each a random part of one truth) as int8 maps and as their team map,
+    tops and candidate positions; some slots sit in their robot's voxel (as padding does),
+    the rest elsewhere."""
     rng = np.random.default_rng(seed)
-    occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(robots, G, G, G),
-                           p=[0.5, 0.45, 0.05]).astype(np.int8)
+    building = rng.uniform(size=(G, G, G)) < 0.1
+    known = rng.uniform(size=(robots, G, G, G)) < 0.55
+    occupancy = np.where(known, np.where(building, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
+    team = np.asarray(maps.pack(jnp.asarray(occupancy), jnp.asarray(building)))
     top = np.stack([brute_tops(o) for o in occupancy])
     origin = rng.uniform(0, 1, (robots, 3)).astype(np.float32)
     position = rng.uniform(0, 1, (robots, slots, 3)).astype(np.float32)
@@ -133,7 +136,7 @@ def _team_scene(seed, robots=4, slots=6):
     position[at_robot] = np.broadcast_to(origin[:, None], position.shape)[at_robot]
     # Another point of the robot's own voxel takes the same gain.
     position[0, 0] = (np.floor(origin[0] * G) + 0.75) / G
-    return occupancy, top, position, origin
+    return occupancy, team, top, position, origin
 
 
 def _robot_by_robot(occupancy, top, position, sensor=SENSOR):
@@ -145,25 +148,25 @@ def _robot_by_robot(occupancy, top, position, sensor=SENSOR):
 def test_team_gain_equals_the_gain_robot_by_robot_also_under_nested_vmaps(sensor):
     scenes = [_team_scene(seed) for seed in range(6)]
     team = jax.jit(view.team_view_gain, static_argnums=(4, 5))
-    for occupancy, top, position, origin in scenes[:2]:
-        got = team(occupancy, top, position, origin, sensor, G)
+    for occupancy, team_map, top, position, origin in scenes[:2]:
+        got = team(team_map, top, position, origin, sensor, G)
         for g, want in zip(got, _robot_by_robot(occupancy, top, position, sensor)):
             np.testing.assert_array_equal(np.asarray(g), want)
     # Two vmapped levels (as a sweep over an env batch): the batch folds into one list.
-    stacked = [np.stack(x).reshape(3, 2, *x[0].shape) for x in zip(*scenes)]
+    stacked = [np.stack(x).reshape(3, 2, *x[0].shape) for x in list(zip(*scenes))[1:]]
     nested = jax.jit(jax.vmap(jax.vmap(lambda o, t, p, r: view.team_view_gain(
         o, t, p, r, sensor, G))))
     got = nested(*stacked)
     for i in range(3):
         for j in range(2):
-            occupancy, top, position, _ = scenes[2 * i + j]
+            occupancy, _, top, position, _ = scenes[2 * i + j]
             for g, want in zip(got, _robot_by_robot(occupancy, top, position, sensor)):
                 np.testing.assert_array_equal(np.asarray(g)[i, j], want)
 
 
 def test_team_gain_with_every_or_no_slot_away_and_robot_by_robot_beyond_flat_indices(
         monkeypatch):
-    occupancy, top, position, origin = _team_scene(7, robots=3, slots=5)
+    occupancy, team_map, top, position, origin = _team_scene(7, robots=3, slots=5)
     want = _robot_by_robot(occupancy, top, position)
     # Every slot away from its robot's voxel; every slot in it; a mix.
     origin_far = np.full_like(origin, 0.999)
@@ -172,13 +175,13 @@ def test_team_gain_with_every_or_no_slot_away_and_robot_by_robot_beyond_flat_ind
              (position, origin)]
     for pos, org in cases:
         expected = _robot_by_robot(occupancy, top, pos)
-        for g, e in zip(view.team_view_gain(occupancy, top, pos, org, SENSOR, G), expected):
+        for g, e in zip(view.team_view_gain(team_map, top, pos, org, SENSOR, G), expected):
             np.testing.assert_array_equal(np.asarray(g), e)
     # Where one flat index over all maps would overflow int32, robot by robot.
     monkeypatch.setattr(view, "_FLAT_LIMIT", G**3)
     view._team_gains.cache_clear()
     try:
-        for g, e in zip(view.team_view_gain(occupancy, top, position, origin, SENSOR, G), want):
+        for g, e in zip(view.team_view_gain(team_map, top, position, origin, SENSOR, G), want):
             np.testing.assert_array_equal(np.asarray(g), e)
     finally:
         view._team_gains.cache_clear()

@@ -40,7 +40,7 @@ def sample(
     position: jax.Array,
     heading: jax.Array,
     budget_left: jax.Array,
-    occupancy: jax.Array,
+    occupancy,
     others: jax.Array,
     others_known: jax.Array,
     cand: CandidateConfig,
@@ -56,7 +56,8 @@ def sample(
       position: (3,) the robot's position.
       heading: () int32 its heading index.
       budget_left: () float32 its remaining path budget.
-      occupancy: (G, G, G) int8 its own occupancy map (geometry.FREE/UNKNOWN/OCCUPIED).
+      occupancy: its own map, (G, G, G) int8 codes (geometry.FREE/UNKNOWN/OCCUPIED) or a
+        `sim.maps.RobotMap` (`geometry.read_codes`).
       others: (N, 3) positions of all robots (the caller's own row is ignored if masked).
       others_known: (N,) bool robots this one can hear (within radio range); False for self.
       cand: static configuration (shapes: K positions, oversampling, shell).
@@ -80,7 +81,8 @@ def sample(
     n_robots = others.shape[0]
     chex.assert_shape(position, (3,))
     chex.assert_shape([heading, budget_left], ())
-    chex.assert_shape(occupancy, (size, size, size))
+    if not hasattr(occupancy, "codes"):
+        chex.assert_shape(occupancy, (size, size, size))
     chex.assert_shape(others, (n_robots, 3))
     chex.assert_shape(others_known, (n_robots,))
     n_draws = cand.positions * cand.oversample

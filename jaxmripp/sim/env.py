@@ -118,9 +118,10 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     # voxel is always one the robot did not know: a blocked move, never a collision.
     truncate = params.safety.flight == "truncate"
 
-    def fly(start, end, occupancy):
+    def fly(start, end, robot):
         def unknown(v):
-            return occupancy.reshape(-1)[geometry.linear_index(v, size)] != FREE
+            own_map = maps.robot_map(state.team_map, robot)
+            return geometry.read_codes(own_map, geometry.linear_index(v, size)) != FREE
 
         def building(v):
             return worldmod.occupied(state.world, v)
@@ -131,7 +132,7 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
         crashed = hit & building(voxel) & ~(truncate & unknown(voxel))
         return stop, crashed, hit & ~crashed, voxel
 
-    stop, crashed, blocked, obstacle = jax.vmap(fly)(state.position, target, state.occupancy)
+    stop, crashed, blocked, obstacle = jax.vmap(fly)(state.position, target, rows)
     heard = comms.contacts(state.position, dyn.radio_range)
     held = jnp.zeros((n,), bool)
     if params.safety.intents:  # robots announce the flights they will really fly
@@ -225,10 +226,12 @@ def team_candidates(key, state: EnvState, contact: jax.Array, params: EnvParams,
                     dyn: DynamicParams) -> cands.Candidates:
     """Every robot's candidates (`candidates.sample`) on its own map; (N, N) `contact`:
     the robots within radio range, the ones whose positions a robot knows."""
+    own_maps = maps.robot_map(state.team_map, jnp.arange(params.n_robots))
     return jax.vmap(
-        cands.sample, in_axes=(0, 0, 0, 0, 0, None, 0, None, None, None, None, None))(
+        cands.sample,
+        in_axes=(0, 0, 0, 0, maps.RobotMap(None, 0), None, 0, None, None, None, None, None))(
         jax.random.split(key, params.n_robots), state.position, state.heading,
-        state.budget_left, state.occupancy, state.position, contact, params.candidates,
+        state.budget_left, own_maps, state.position, contact, params.candidates,
         params.safety, dyn.turn_cost, dyn.collision_distance, params.size)
 
 

@@ -25,6 +25,28 @@ def linear_index(voxel: jnp.ndarray, size: int) -> jnp.ndarray:
     return (voxel[..., 0] * size + voxel[..., 1]) * size + voxel[..., 2]
 
 
+@jax.custom_batching.custom_vmap
+def take_flat(table: jax.Array, index: jax.Array) -> jax.Array:
+    """table (L,)[index] for indices known to lie in [0, L)."""
+    return jnp.take(table, index, mode="clip")
+
+
+@take_flat.def_vmap
+def take_flat_vmap(axis_size, in_batched, table, index):
+    """Batched tables become one long table, indices offset by each table's position: a
+    flat gather, rather than the (table, entry) index pairs vmap would otherwise build."""
+    if not in_batched[0]:
+        return take_flat(table, index), in_batched[1]
+    if not in_batched[1]:
+        index = jnp.broadcast_to(index, (axis_size, *index.shape))
+    length = table.shape[-1]
+    if axis_size * length >= 2**31:  # flat indices would overflow int32
+        return jax.vmap(take_flat.fun)(table, index), True
+    start = jnp.arange(axis_size, dtype=jnp.int32) * length
+    start = start.reshape((-1,) + (1,) * (index.ndim - 1))
+    return take_flat(table.reshape(-1), index + start), True
+
+
 def inside_world(position: jnp.ndarray) -> jnp.ndarray:
     """(..., 3) -> (...,) True where the position lies in the closed unit cube."""
     return jnp.all((position >= 0.0) & (position <= 1.0), axis=-1)
@@ -94,25 +116,32 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
     return voxels, entry.astype(jnp.float32), complete
 
 
-def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid: jnp.ndarray, size: int,
+def read_codes(grid, flat: jnp.ndarray) -> jnp.ndarray:
+    """The codes of a map at flat voxel indices: `grid` is a (G, G, G) map of codes or a
+    map with a `codes(flat)` reader (a robot's view of its team map, `sim.maps.RobotMap`)."""
+    return grid.codes(flat) if hasattr(grid, "codes") else take_flat(grid.reshape(-1), flat)
+
+
+def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid, size: int,
                     max_length: float) -> jnp.ndarray:
-    """(3,), (M, 3), (G, G, G) codes -> (M, V) the codes of every traversed voxel, and (M,)
-    whether each list is complete (see `traverse`)."""
+    """(3,), (M, 3), a map (`read_codes`) -> (M, V) the codes of every traversed voxel, and
+    (M,) whether each list is complete (see `traverse`)."""
     flat, _, complete = jax.vmap(traverse, in_axes=(None, 0, None, None, None))(
         start, ends, size, max_length, True)
-    return grid.reshape(-1)[flat], complete
+    return read_codes(grid, flat), complete
 
 
-def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray, size: int,
+def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy, size: int,
                max_length: float) -> jnp.ndarray:
-    """(3,), (M, 3), (G, G, G) map -> (M,) True where every traversed voxel is FREE."""
+    """(3,), (M, 3), a map (`read_codes`) -> (M,) True where every traversed voxel is FREE."""
     codes, complete = traversed_codes(start, ends, occupancy, size, max_length)
     return jnp.all(codes == FREE, axis=-1) & complete
 
 
-def not_mapped_occupied(start: jnp.ndarray, ends: jnp.ndarray, occupancy: jnp.ndarray,
-                        size: int, max_length: float) -> jnp.ndarray:
-    """(3,), (M, 3), (G, G, G) map -> (M,) True where no traversed voxel is OCCUPIED."""
+def not_mapped_occupied(start: jnp.ndarray, ends: jnp.ndarray, occupancy, size: int,
+                        max_length: float) -> jnp.ndarray:
+    """(3,), (M, 3), a map (`read_codes`) -> (M,) True where no traversed voxel is
+    OCCUPIED."""
     codes, complete = traversed_codes(start, ends, occupancy, size, max_length)
     return jnp.all(codes != OCCUPIED, axis=-1) & complete
 

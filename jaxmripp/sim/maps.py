@@ -20,8 +20,9 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
-from jaxmripp.sim import sensing
+from jaxmripp.sim import geometry, sensing
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 BUILDING = 1  # bit 0 of word 0
@@ -80,6 +81,37 @@ def pack(robot_maps: jax.Array, building: jax.Array) -> jax.Array:
     return jnp.stack(packed, axis=-4)
 
 
+def codes_at(words: jax.Array, robot: jax.Array, cell: jax.Array) -> jax.Array:
+    """Robots' codes from team-map words (W, C) uint8 (one map's G**3 cells, or several
+    maps side by side) at cells (in [0, C)) and robots (broadcast with them): one byte
+    read per voxel, two with W > 1."""
+    count, cells = words.shape
+    flat = words.reshape(-1)
+    first = geometry.take_flat(flat, cell)
+    place = robot + 1
+    own = first if count == 1 else geometry.take_flat(flat, (place // 8) * cells + cell)
+    known = (own & jnp.left_shift(1, place % 8).astype(jnp.uint8)) != 0
+    code = jnp.where((first & BUILDING) != 0, jnp.int8(OCCUPIED), jnp.int8(FREE))
+    return jnp.where(known, code, jnp.int8(UNKNOWN))
+
+
+@struct.dataclass
+class RobotMap:
+    """One robot's map as read from its team map (what `geometry.read_codes` takes in place
+    of an int8 map): its codes at flat voxel indices, one byte read each."""
+
+    words: jax.Array  # (W, G**3) uint8 the team map
+    robot: jax.Array  # () int32
+
+    def codes(self, cell: jax.Array) -> jax.Array:
+        return codes_at(self.words, self.robot, cell)
+
+
+def robot_map(team: jax.Array, robot: jax.Array) -> RobotMap:
+    """Robot `robot`'s map in the team map (W, G, G, G)."""
+    return RobotMap(team.reshape(team.shape[0], -1), jnp.asarray(robot, jnp.int32))
+
+
 def observe(team: jax.Array, voxels: jax.Array) -> jax.Array:
     """Team map, each robot's observed flat voxel indices (N, V) (G**3 and beyond: none)
     -> the team map with those voxels known to their robots.
@@ -93,7 +125,7 @@ def observe(team: jax.Array, voxels: jax.Array) -> jax.Array:
     def one(i, flat):
         index = jnp.where((voxels[i] >= 0) & (voxels[i] < cells),
                           word[i] * cells + voxels[i], team.size)
-        current = sensing.take_flat(flat, jnp.minimum(index, team.size - 1))
+        current = geometry.take_flat(flat, jnp.minimum(index, team.size - 1))
         return sensing.scatter_set(flat, index, current | bit[i])
 
     flat = jax.lax.fori_loop(0, n, one, team.reshape(-1), unroll=n <= _FUSED_ROBOT_LIMIT)

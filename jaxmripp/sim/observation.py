@@ -103,7 +103,7 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
     gain_columns = _stacked_view_columns(view.team_view_gain(
-        state.occupancy, state.building_top, c.position[:, ::geometry.N_HEADINGS],
+        state.team_map, state.building_top, c.position[:, ::geometry.N_HEADINGS],
         state.position, params.sensor, params.size), c.cost, shell)
     peers = jax.vmap(view.peer_distance, in_axes=(0, None, 0, None))(
         c.position, state.position, state.heard, shell)

@@ -41,6 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmripp.sim import geometry
+from jaxmripp.sim.geometry import take_flat
 from jaxmripp.config import SensorConfig
 from jaxmripp.sim.world import World
 
@@ -260,28 +261,6 @@ def _windows_seen(world: World, pose: _Pose, cam: _Camera, clear, tested):
     # discoveries, the utility) would each recompute an elementwise `or`, and a boolean
     # `any` over three faces XLA rewrites into one.
     return jnp.sum(jnp.stack(in_sight).astype(jnp.int32), axis=0) > 0
-
-
-@jax.custom_batching.custom_vmap
-def take_flat(table: jax.Array, index: jax.Array) -> jax.Array:
-    """table (L,)[index] for indices known to lie in [0, L)."""
-    return jnp.take(table, index, mode="clip")
-
-
-@take_flat.def_vmap
-def take_flat_vmap(axis_size, in_batched, table, index):
-    """Batched tables become one long table, indices offset by each table's position: a
-    flat gather, rather than the (table, entry) index pairs vmap would otherwise build."""
-    if not in_batched[0]:
-        return take_flat(table, index), in_batched[1]
-    if not in_batched[1]:
-        index = jnp.broadcast_to(index, (axis_size, *index.shape))
-    length = table.shape[-1]
-    if axis_size * length >= 2**31:  # flat indices would overflow int32
-        return jax.vmap(take_flat.fun)(table, index), True
-    start = jnp.arange(axis_size, dtype=jnp.int32) * length
-    start = start.reshape((-1,) + (1,) * (index.ndim - 1))
-    return take_flat(table.reshape(-1), index + start), True
 
 
 # ---------------------------------------------------------------------------------------

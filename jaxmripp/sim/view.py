@@ -18,9 +18,10 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxmripp.config import SensorConfig
-from jaxmripp.sim import geometry
+from jaxmripp.sim import geometry, maps
 from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
-from jaxmripp.sim.sensing import CastResult, scatter_max, take_flat
+from jaxmripp.sim.geometry import take_flat
+from jaxmripp.sim.sensing import CastResult, scatter_max
 from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
 
@@ -53,10 +54,13 @@ def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
 
 def nearby_tops(top: jax.Array) -> jax.Array:
     """(G, G) -> (G, G) the largest top of each column and its four neighbours."""
-    padded = jnp.pad(top, 1)
-    return jnp.maximum(
-        jnp.maximum(padded[1:-1, 1:-1], jnp.maximum(padded[:-2, 1:-1], padded[2:, 1:-1])),
-        jnp.maximum(padded[1:-1, :-2], padded[1:-1, 2:]))
+    # Shifted copies in int32 (a pad and int8 maxima run several times slower on XLA:CPU).
+    top32 = top.astype(jnp.int32)
+    edge = jnp.zeros_like(top32)
+    shifted = [jnp.concatenate([top32[1:], edge[:1]]), jnp.concatenate([edge[:1], top32[:-1]]),
+               jnp.concatenate([top32[:, 1:], edge[:, :1]], axis=1),
+               jnp.concatenate([edge[:, :1], top32[:, :-1]], axis=1)]
+    return functools.reduce(jnp.maximum, shifted, top32).astype(top.dtype)
 
 
 def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
@@ -67,19 +71,28 @@ def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
 
 
-def _marked_map(occupancy: jax.Array, near: jax.Array, sensor: SensorConfig, size: int,
-                zero: jax.Array | int = 0) -> jax.Array:
-    """The map as the gain reads it, flat (G**3,) int8: FACADE for unknown facade voxels
-    and, without occlusion, known buildings marked FREE (then only leaving the grid,
-    coded OCCUPIED by `_codes`, stops a ray); `near` are the `facade_tops`. XLA fuses it
-    into the reads of `_codes`: each sample reads its voxel's code and its column's facade
-    top. (`zero`, an int8 0, serves `_team_gains`' loop.)"""
-    near = near[:, :, None]
-    height = (jnp.arange(size, dtype=jnp.int8) | zero)[None, None, :]
-    known = occupancy if sensor.gain_occlusion else \
-        jnp.where(occupancy == OCCUPIED, jnp.int8(FREE), occupancy)
-    return jnp.where((occupancy == UNKNOWN) & (near > zero) & (height <= near),
-                     jnp.int8(FACADE), known).reshape(-1)
+def _marked_code(code: jax.Array, near: jax.Array, z: jax.Array,
+                 sensor: SensorConfig) -> jax.Array:
+    """Codes as the gain reads them, elementwise: FACADE for unknown facade voxels (at
+    height z, under their column's facade top `near`, `facade_tops`) and, without
+    occlusion, known buildings marked FREE (then only leaving the grid, coded OCCUPIED by
+    `_codes`, stops a ray)."""
+    known = code if sensor.gain_occlusion else jnp.where(code == OCCUPIED, jnp.int8(FREE), code)
+    return jnp.where((code == UNKNOWN) & (near > 0) & (z <= near), jnp.int8(FACADE), known)
+
+
+def _marked_map(occupancy: jax.Array, near: jax.Array, sensor: SensorConfig,
+                size: int) -> jax.Array:
+    """One robot's map (G, G, G) as the gain reads it (`_marked_code`), flat (G**3,) int8.
+    XLA fuses it into the reads of `_codes`: each sample reads its voxel's code and its
+    column's facade top."""
+    z = jnp.arange(size, dtype=jnp.int8)[None, None, :]
+    return _marked_code(occupancy, near[:, :, None], z, sensor).reshape(-1)
+
+
+def _map_reader(marked: jax.Array, size: int):
+    """The `_codes` reader of one marked map, flat (G**3,)."""
+    return lambda x, y, z: take_flat(marked, (x * size + y) * size + z)
 
 
 def _sample_major(sensor: SensorConfig, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -95,29 +108,29 @@ def _total_weight(sensor: SensorConfig, size: int) -> int:
     return spec.RAYS_PER_SIDE**2 * int(weights.sum())
 
 
-def _codes(marked: jax.Array, camera: jax.Array, offsets: jax.Array, size: int,
-           base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
+def _codes(read, camera: jax.Array, offsets: jax.Array,
+           size: int) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
-    voxel indices and codes from `_marked_map`, OCCUPIED outside the grid. `base` (same
-    leading shape as camera, or 0) offsets the lookup where `marked` holds several maps."""
+    voxel indices and marked codes, read by `read(x, y, z)` at the clipped voxels,
+    OCCUPIED outside the grid."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
-    flat = geometry.linear_index(jnp.stack([jnp.clip(v, 0, size - 1) for v in (x, y, z)], -1),
-                                 size)
-    return flat, jnp.where(inside, take_flat(marked, flat + base), jnp.int8(OCCUPIED))
+    x, y, z = (jnp.clip(v, 0, size - 1) for v in (x, y, z))
+    return (x * size + y) * size + z, jnp.where(inside, read(x, y, z), jnp.int8(OCCUPIED))
 
 
-def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: int,
-               base: jax.Array | int = 0) -> tuple[jax.Array, jax.Array]:
-    """Camera voxels (K, 3) -> the integer sums (unknown, facade), each (K, 4) int32, of
-    the gain samples' weights; (K,) `base` as in `_codes`."""
-    return _heading_sums(_ray_sums(marked, camera, sensor, size, base))
+def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig,
+               size: int) -> tuple[jax.Array, jax.Array]:
+    """One robot's marked map, camera voxels (K, 3) -> the integer sums (unknown, facade),
+    each (K, 4) int32, of the gain samples' weights."""
+    return _heading_sums(_ray_sums(_map_reader(marked, size), camera, sensor, size))
 
 
-def _ray_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: int,
-              base: jax.Array | int = 0) -> tuple[jax.Array, ...]:
-    """`_gain_sums` per ray, (K, 4 * R) int32 each, in the layout `_heading_sums` reads:
-    (packed,) while both totals fit 15 bits, else (unknown, facade).
+def _ray_sums(read, camera: jax.Array, sensor: SensorConfig,
+              size: int) -> tuple[jax.Array, ...]:
+    """`_gain_sums` per ray, (K, 4 * R) int32 each, with codes from `read` (see `_codes`;
+    it reads samples (K, 4 * R)), in the layout `_heading_sums` reads: (packed,) while
+    both totals fit 15 bits, else (unknown, facade).
 
     Integer sums are exact in any order. While both totals fit 15 bits (ranges up to about
     75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
@@ -129,13 +142,12 @@ def _ray_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: 
     # arrays would be written to memory and read back.
     per_distance = np.moveaxis(offsets, 1, 0).reshape(len(weights), 1, -1, 3)
     camera = camera[:, None, :]
-    base = jnp.asarray(base)[..., None]
     packed = _total_weight(sensor, size) < 1 << 15
     unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
     clear = jnp.ones(unknown_sum.shape, bool)
     for s, w in enumerate(weights.astype(int)):
-        _, code = _codes(marked, camera, per_distance[s], size, base)
+        _, code = _codes(read, camera, per_distance[s], size)
         unknown = clear & ((code == UNKNOWN) | (code == FACADE))
         facade = clear & (code == FACADE)
         if packed:
@@ -171,19 +183,20 @@ def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     return _scaled(_gain_sums(marked, camera, sensor, size), sensor, size)
 
 
-def team_view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
+def team_view_gain(team_map: jax.Array, top: jax.Array, position: jax.Array,
                    origin: jax.Array, sensor: SensorConfig,
                    size: int) -> tuple[jax.Array, jax.Array]:
-    """`view_gain` for a team: maps (B, G, G, G), tops (B, G, G), positions (B, K, 3) and
-    each robot's own position (B, 3) -> (B, K, 4) each, equal to `view_gain` per robot.
+    """`view_gain` for a team: its team map (W, G, G, G) (`sim.maps`), tops (N, G, G),
+    positions (N, K, 3) and each robot's own position (N, 3) -> (N, K, 4) each, equal to
+    `view_gain` on each robot's map.
 
     The gain depends on the camera voxel only, and the positions that share the robot's
     voxel (padding candidates sit at the robot) take its gain, computed once. Under `vmap`
-    the batch folds into B (`_team_gains`), so the positions that need their own gain are
-    gathered across the whole batch and computed in chunks, as many as there are: the work
-    follows the candidates there are rather than the slots.
+    the batch folds into the robots (`_team_gains`), so the positions that need their own
+    gain are gathered across the whole batch and computed in chunks, as many as there are:
+    the work follows the candidates there are rather than the slots.
     """
-    unknown, facade = _team_gains(sensor, size)(occupancy, top, position, origin)
+    unknown, facade = _team_gains(sensor, size, top.shape[0])(team_map, top, position, origin)
     return _scaled((unknown, facade), sensor, size)
 
 
@@ -191,49 +204,61 @@ _CHUNKS = 32  # the needed positions are computed in chunks of 1 / _CHUNKS of th
 _FLAT_LIMIT = 2**31  # flat indices into all maps at once must stay below this (int32)
 
 
-def _listed_sums(occupancy, near, camera, base, needed, sensor: SensorConfig, size: int):
+def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Array,
+                 needed: jax.Array, sensor: SensorConfig, size: int):
     """The gain sums of the needed entries (P,) in their order, each (P, 4) int32 (rows
     past their count are 0): computed chunk by chunk, only as many chunks as are needed.
 
-    The loop keeps the sums per ray and adds up the rays after it: each chunk is then one
-    elementwise pass, which XLA:CPU runs faster than a reduction over the short ray axis."""
+    `team` are E team maps (E, W, G, G, G) and `near` the facade tops (E * N, G, G) of
+    their robots; entry p belongs to robot p // (K + 1) of that folded order. A sample
+    reads its map byte and its column's facade top and decodes them for its robot, so
+    no robot's map is ever written out. The loop keeps the sums per ray and adds up the
+    rays after it: each chunk is then one elementwise pass, which XLA:CPU runs faster than
+    a reduction over the short ray axis."""
     chunk = -(-needed.shape[0] // _CHUNKS)
     (listed,) = jnp.nonzero(needed, size=chunk * _CHUNKS, fill_value=0)
     count = jnp.sum(needed, dtype=jnp.int32)
+    per_robot = needed.shape[0] // near.shape[0]
+    cells = size**3
+    # The maps' words side by side: word w of environment e's map at w * E * G**3 + e * G**3.
+    words = jnp.swapaxes(team.reshape(-1, team.shape[-4], cells), 0, 1).reshape(
+        team.shape[-4], -1)
+    near = near.reshape(-1)
 
-    def one_chunk(i, carry):
-        # The marked maps must be built where they are read, inside the loop: XLA hoists
-        # what does not change between iterations out of the loop, which would write all
-        # B maps (or a predicate on them) out whole. `lowest` stays 0 (min with i >= 0),
-        # which XLA cannot prove, so the maps' terms read through it vary with the loop.
-        sums, lowest = carry
-        zero = lowest.astype(jnp.int8)
-        marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None, None))(
-            occupancy | zero, near, sensor, size, zero).reshape(-1)
+    def one_chunk(i, sums):
+        robot = (jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk) // per_robot)[:, None]
+
+        def read(x, y, z):
+            code = maps.codes_at(words, robot % n_robots,
+                                 (robot // n_robots) * cells + (x * size + y) * size + z)
+            return _marked_code(code, take_flat(near, (robot * size + x) * size + y), z,
+                                sensor)
+
         at = jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk)
-        part = _ray_sums(marked, camera[at], sensor, size, base[at])
+        part = _ray_sums(read, camera[at], sensor, size)
         return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
-                     for s, p in zip(sums, part)), jnp.minimum(lowest, i)
+                     for s, p in zip(sums, part))
 
-    shapes = jax.eval_shape(functools.partial(_ray_sums, sensor=sensor, size=size),
-                            occupancy.reshape(-1), camera[:chunk], base=base[:chunk])
+    shapes = jax.eval_shape(
+        lambda c: _ray_sums(lambda x, y, z: jnp.zeros(x.shape, jnp.int8), c, sensor, size),
+        camera[:chunk])
     empty = tuple(jnp.zeros((chunk * _CHUNKS, *x.shape[1:]), x.dtype) for x in shapes)
-    sums, _ = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk,
-                                (empty, jnp.int32(0)))
+    sums = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk, empty)
     return _heading_sums(sums)
 
 
 @functools.lru_cache(maxsize=None)
-def _team_gains(sensor: SensorConfig, size: int):
+def _team_gains(sensor: SensorConfig, size: int, n_robots: int):
     """The integer sums of `team_view_gain` as a function of arrays only, batched by folding
     (a custom_vmap needs its static arguments closed over)."""
 
     @jax.custom_batching.custom_vmap
-    def gains(occupancy, top, position, origin):
+    def gains(team, top, position, origin):
         robots, slots = position.shape[:2]
         near = jax.vmap(facade_tops, in_axes=(0, None))(top, sensor)
         if robots * size**3 >= _FLAT_LIMIT:  # robot by robot, every slot
-            marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None))(occupancy, near,
+            robot_maps = maps.robot_maps(team, n_robots).reshape(robots, size, size, size)
+            marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None))(robot_maps, near,
                                                                        sensor, size)
             return jax.vmap(lambda m, c: _gain_sums(m, c, sensor, size))(
                 marked, geometry.voxel_of(position, size))
@@ -243,8 +268,7 @@ def _team_gains(sensor: SensorConfig, size: int):
         camera = jnp.concatenate([geometry.voxel_of(position, size), own], axis=1)
         needed = jnp.concatenate([jnp.any(camera[:, :slots] != own, axis=-1),
                                   jnp.ones((robots, 1), bool)], axis=1)
-        base = jnp.repeat(jnp.arange(robots, dtype=jnp.int32) * size**3, slots + 1)
-        sums = _listed_sums(occupancy, near, camera.reshape(-1, 3), base, needed.reshape(-1),
+        sums = _listed_sums(team, n_robots, near, camera.reshape(-1, 3), needed.reshape(-1),
                             sensor, size)
         # Where each slot's sums were listed: at its own rank, or at its robot's voxel's.
         rank = (jnp.cumsum(needed.reshape(-1)) - 1).reshape(robots, slots + 1)
@@ -252,15 +276,16 @@ def _team_gains(sensor: SensorConfig, size: int):
         return tuple(s[source] for s in sums)
 
     @gains.def_vmap
-    def gains_vmap(axis_size, in_batched, occupancy, top, position, origin):
+    def gains_vmap(axis_size, in_batched, team, top, position, origin):
         # An argument without the axis is broadcast: for maps that is a copy per entry,
-        # so the env vmaps maps and candidates together.
+        # so the env vmaps maps and candidates together. The robots fold into one axis;
+        # the team maps keep theirs, N robots to a map.
         args = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
-                for x, b in zip((occupancy, top, position, origin), in_batched)]
+                for x, b in zip((team, top, position, origin), in_batched)]
         robots = args[2].shape[1]
-        folded = [x.reshape(axis_size * robots, *x.shape[2:]) for x in args]
-        return tuple(s.reshape(axis_size, robots, *s.shape[1:]) for s in gains(*folded)), \
-            (True, True)
+        folded = [x.reshape(axis_size * robots, *x.shape[2:]) for x in args[1:]]
+        return tuple(s.reshape(axis_size, robots, *s.shape[1:])
+                     for s in gains(args[0], *folded)), (True, True)
 
     return gains
 
@@ -271,8 +296,9 @@ def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     int32, G**3 for the other samples: the part of the map that pose would reveal."""
     offsets, _ = _sample_major(sensor, size)
     camera = geometry.voxel_of(position, size)
-    flat, code = _codes(_marked_map(occupancy, facade_tops(top, sensor), sensor, size), camera,
-                        jnp.asarray(offsets)[heading], size)  # (S, R)
+    marked = _marked_map(occupancy, facade_tops(top, sensor), sensor, size)
+    flat, code = _codes(_map_reader(marked, size), camera, jnp.asarray(offsets)[heading],
+                        size)  # (S, R)
     blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
     unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
     return jnp.where(unknown, flat, size**3).reshape(-1)
