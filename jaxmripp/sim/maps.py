@@ -9,8 +9,9 @@ whether it is a building, bit 1 + i whether robot i knows it, packed into W =
 the memory at N = 3 and lets a map merge update every robot's bits in place, one pass
 over one byte per voxel.
 
-`robot_maps` derives the int8 maps (N, G, G, G) as an elementwise function of the team
-map, which XLA fuses into the reads of the maps' readers.
+The simulator's readers take a robot's view of the team map (`RobotMap`, `codes_at`):
+one byte read per voxel, decoded for the robot, so no robot's map is ever written out.
+`robot_maps` derives the int8 maps (N, G, G, G) whole, for planners, tests and pictures.
 """
 
 from __future__ import annotations
@@ -34,10 +35,15 @@ def words(n_robots: int) -> int:
     return (n_robots + 8) // 8
 
 
+def _place(robot):
+    """Robot indices (NumPy or JAX integers) -> (word, bit value as uint8) of their bits."""
+    place = robot + 1
+    return place // 8, (1 << (place % 8)).astype(np.uint8)
+
+
 def _bit_places(n_robots: int) -> tuple[np.ndarray, np.ndarray]:
     """(word (N,), bit value (N,) uint8) of each robot's bit."""
-    place = np.arange(n_robots) + 1
-    return place // 8, (1 << (place % 8)).astype(np.uint8)
+    return _place(np.arange(n_robots))
 
 
 def empty(height: jax.Array, n_robots: int) -> jax.Array:
@@ -88,9 +94,9 @@ def codes_at(words: jax.Array, robot: jax.Array, cell: jax.Array) -> jax.Array:
     count, cells = words.shape
     flat = words.reshape(-1)
     first = geometry.take_flat(flat, cell)
-    place = robot + 1
-    own = first if count == 1 else geometry.take_flat(flat, (place // 8) * cells + cell)
-    known = (own & jnp.left_shift(1, place % 8).astype(jnp.uint8)) != 0
+    word, bit = _place(jnp.asarray(robot, jnp.int32))
+    own = first if count == 1 else geometry.take_flat(flat, word * cells + cell)
+    known = (own & bit) != 0
     code = jnp.where((first & BUILDING) != 0, jnp.int8(OCCUPIED), jnp.int8(FREE))
     return jnp.where(known, code, jnp.int8(UNKNOWN))
 

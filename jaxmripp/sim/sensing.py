@@ -25,7 +25,8 @@ trailing-axis reductions do not vectorise; per-cast scalars and per-ray distance
 of integer reductions, which XLA never fuses into their consumers, so they are computed
 once instead of inside every gather that reads them (`optimization_barrier` is dropped on
 CPU); and gathers from batched tables (height maps, rays) fold the batch into one flat
-table (`take_flat`), as do the occupancy scatter and the building tops' (`_flat_scatter`).
+table (`geometry.take_flat`), as do the map scatters and the building tops'
+(`_flat_scatter`).
 """
 
 from __future__ import annotations

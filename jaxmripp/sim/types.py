@@ -32,7 +32,8 @@ class Metrics:
 
 @struct.dataclass
 class EnvState:
-    """N robots, T target slots, G voxels per side, H = T_max + 1 history entries."""
+    """N robots, T target slots, G voxels per side, H = T_max + 1 history entries, W =
+    maps.words(N) bytes per voxel of the team map."""
 
     world: worldmod.World
     position: jax.Array  # (N, 3) float32
