@@ -38,8 +38,7 @@ def test_an_empty_team_map_knows_nothing_but_holds_the_truth(n):
 def test_observed_voxels_take_their_true_codes_for_their_robot_only(n):
     rng = np.random.default_rng(1)
     height, solid = _truth(rng)
-    voxels = rng.integers(0, G**3, (n, 40))
-    voxels[:, :5] = voxels[:, 5:10]  # repeated voxels within a list
+    voxels = np.stack([rng.permutation(G**3)[:40] for _ in range(n)])  # distinct per robot
     voxels[:, -3:] = [G**3, G**3 + 7, -1]  # outside the grid: dropped
     team = jax.jit(maps.observe)(maps.empty(jnp.asarray(height, jnp.int8), n),
                                  jnp.asarray(voxels, jnp.int32))
@@ -53,7 +52,8 @@ def test_observed_voxels_take_their_true_codes_for_their_robot_only(n):
 def test_observing_under_vmap_equals_observing_each_environment():
     rng = np.random.default_rng(2)
     heights = np.stack([_truth(rng)[0] for _ in range(3)]).astype(np.int8)
-    voxels = jnp.asarray(rng.integers(0, G**3 + 5, (3, 2, 30)), jnp.int32)
+    voxels = jnp.asarray(np.stack([[rng.permutation(G**3 + 5)[:30] for _ in range(2)]
+                                   for _ in range(3)]), jnp.int32)
     empty = jax.vmap(maps.empty, in_axes=(0, None))(jnp.asarray(heights), 2)
     batched = jax.jit(jax.vmap(maps.observe))(empty, voxels)
     for e in range(3):
@@ -82,7 +82,8 @@ def test_observe_and_merge_trace_once_and_keep_the_shape():
 
     linked = jnp.ones((n, n), bool)
     for seed in range(3):
-        voxels = jax.random.randint(jax.random.PRNGKey(seed), (n, 10), 0, G**3)
+        voxels = jnp.stack([jax.random.permutation(jax.random.PRNGKey(3 * seed + i), G**3)[:10]
+                            for i in range(n)])
         team = step(team, voxels, linked)
     chex.assert_shape(team, (1, G, G, G))
     # All hear all: every robot knows what any robot observed.
@@ -103,6 +104,11 @@ def test_team_map_updates_match_int8_maps_on_a_cast():
         w, position, jnp.asarray([0, 3]), SensorConfig(), size)
     int8_maps = jax.vmap(sensing.update_occupancy)(
         jnp.broadcast_to(sensing.empty_occupancy(size), (2, size, size, size)), casts)
+    # `observe` needs each robot's in-grid voxels distinct: a cast's are.
+    for voxels in np.asarray(casts.voxels):
+        inside = voxels[voxels < size**3]
+        assert len(np.unique(inside)) == len(inside) > 100
+    # Twice, as robots re-observe voxels: set bits stay set, no bit carries into another.
     team = maps.observe(maps.empty(w.height, 2), casts.voxels)
+    team = maps.observe(team, casts.voxels)
     np.testing.assert_array_equal(maps.robot_maps(team, 2), int8_maps)
-    assert (np.asarray(int8_maps) != UNKNOWN).sum() > 100

@@ -27,7 +27,6 @@ from jaxmripp.sim import geometry, sensing
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 BUILDING = 1  # bit 0 of word 0
-_FUSED_ROBOT_LIMIT = 8  # largest team whose per-robot loops below are unrolled
 
 
 def words(n_robots: int) -> int:
@@ -119,23 +118,22 @@ def robot_map(team: jax.Array, robot: jax.Array) -> RobotMap:
 
 
 def observe(team: jax.Array, voxels: jax.Array) -> jax.Array:
-    """Team map, each robot's observed flat voxel indices (N, V) (G**3 and beyond: none)
+    """Team map, each robot's observed flat voxel indices (N, V) (outside [0, G**3): none)
     -> the team map with those voxels known to their robots.
 
-    Robot by robot: a voxel several robots saw takes each one's bit; within one robot's
-    list, repeated voxels write the same byte."""
+    A robot's list must hold an in-grid voxel at most once, as a cast's does (its voxels
+    are distinct offsets of the camera's view table). Robots' bits are distinct, so all
+    robots' bits not yet set go in as one scatter-add: the sum of distinct bits is their
+    union."""
     n, cells = voxels.shape[0], team[0].size
     word, bit = _bit_places(n)
-    word, bit = jnp.asarray(word, jnp.int32), jnp.asarray(bit)
-
-    def one(i, flat):
-        index = jnp.where((voxels[i] >= 0) & (voxels[i] < cells),
-                          word[i] * cells + voxels[i], team.size)
-        current = geometry.take_flat(flat, jnp.minimum(index, team.size - 1))
-        return sensing.scatter_set(flat, index, current | bit[i])
-
-    flat = jax.lax.fori_loop(0, n, one, team.reshape(-1), unroll=n <= _FUSED_ROBOT_LIMIT)
-    return flat.reshape(team.shape)
+    inside = (voxels >= 0) & (voxels < cells)
+    index = jnp.where(inside, jnp.asarray(word, jnp.int32)[:, None] * cells + voxels, team.size)
+    flat = team.reshape(-1)
+    current = geometry.take_flat(flat, jnp.minimum(index, team.size - 1))
+    bits = jnp.asarray(bit)[:, None]
+    added = jnp.where((current & bits) == 0, bits, jnp.uint8(0))
+    return sensing.scatter_add(flat, index.reshape(-1), added.reshape(-1)).reshape(team.shape)
 
 
 def merge(team: jax.Array, linked: jax.Array) -> jax.Array:

@@ -309,8 +309,8 @@ def cast(world: World, position: jax.Array, heading: jax.Array, sensor: SensorCo
 
 
 def _flat_scatter(write: str):
-    """target (L,), index, values -> target with target[index] written (`write`: "set" or
-    "max"); indices outside [0, L) are dropped."""
+    """target (L,), index, values -> target with target[index] written (`write`: "set",
+    "max" or "add"); indices outside [0, L) are dropped."""
 
     @jax.custom_batching.custom_vmap
     def scatter(target: jax.Array, index: jax.Array, values: jax.Array) -> jax.Array:
@@ -339,6 +339,7 @@ def _flat_scatter(write: str):
 
 scatter_set = _flat_scatter("set")
 scatter_max = _flat_scatter("max")
+scatter_add = _flat_scatter("add")
 
 
 def update_occupancy(occupancy: jax.Array, result: CastResult) -> jax.Array:
