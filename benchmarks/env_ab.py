@@ -1,0 +1,147 @@
+"""The environment step of the working tree against the same step at another commit, in one
+process: on a shared machine whose speed moves by tens of percent between minutes, only
+steps alternated within one process compare two versions fairly.
+
+The other commit's `jaxmripp` package is exported with `git archive` into a temporary
+directory and imported under another name (its absolute imports rewritten), so both
+versions run side by side. Each round resets both batches, takes 2 warm-up steps each and
+then alternates STEPS timed steps between them (the order flipping every step). Prints
+the median wall and CPU time per step of each and their ratios (JSON lines):
+
+    env_ab.step_s.base / env_ab.step_s.tree        median wall seconds per step
+    env_ab.wall_ratio                              tree over base (< 1: the tree is faster)
+    env_ab.cpu_ratio                               the same for CPU seconds per step
+
+Usage (from the repository root):
+    python benchmarks/env_ab.py --base COMMIT [--envs 1024] [--rounds 4] [--steps 6]
+        [--set key=value ...]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import io
+import os
+import re
+import statistics
+import subprocess
+import sys
+import tarfile
+import tempfile
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+import jax  # noqa: E402
+
+from common import emit  # noqa: E402
+
+_BASE_PACKAGE = "jaxmripp_base"
+
+
+def export_package(commit: str, into: str) -> None:
+    """Writes the commit's `jaxmripp` package to `into`/jaxmripp_base, imports renamed."""
+    try:
+        archive = subprocess.run(["git", "archive", commit, "jaxmripp"], check=True,
+                                 capture_output=True).stdout
+    except subprocess.CalledProcessError as err:
+        raise SystemExit(f"env_ab.py: git archive {commit!r} failed: "
+                         f"{err.stderr.decode().strip()}; --base takes a commit of this "
+                         "repository") from None
+    pattern = re.compile(r"\bjaxmripp(?=[.\s])")
+    with tarfile.open(fileobj=io.BytesIO(archive)) as tar:
+        for member in tar.getmembers():
+            if not member.isfile():
+                continue
+            path = os.path.join(into, _BASE_PACKAGE + member.name[len("jaxmripp"):])
+            os.makedirs(os.path.dirname(path), exist_ok=True)
+            data = tar.extractfile(member).read()
+            if member.name.endswith(".py"):
+                data = pattern.sub(_BASE_PACKAGE, data.decode()).encode()
+            with open(path, "wb") as out:
+                out.write(data)
+
+
+def team_stepper(package: str, overrides: list[str], envs: int):
+    """(reset, step) of a vmapped, jitted random-planner team step of `package`."""
+    config = importlib.import_module(f"{package}.config")
+    envmod = importlib.import_module(f"{package}.sim.env")
+    params_mod = importlib.import_module(f"{package}.sim.params")
+    baselines = importlib.import_module(f"{package}.evaluation.baselines")
+    cfg = config.load(None, overrides)
+    params = params_mod.EnvParams.from_config(cfg)
+    dyn = params_mod.DynamicParams.from_config(cfg)
+    planner = baselines.random_planner()
+    reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)))
+
+    def team_step(key, obs, state, dyn):
+        key_act, key_step = jax.random.split(key)
+        _, actions = planner.act(key_act, None, obs, state, dyn)
+        obs, state, reward, _, _ = envmod.step(key_step, state, actions, params, dyn)
+        return obs, state, reward
+
+    step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)), donate_argnums=(1, 2))
+    keys = jax.random.split(jax.random.PRNGKey(0), envs)
+    batch = {}
+
+    def do_reset():
+        batch["obs"], batch["state"] = jax.block_until_ready(reset(keys, dyn))
+        batch["key"] = jax.random.PRNGKey(1)
+
+    def do_step():
+        batch["key"], key = jax.random.split(batch["key"])
+        batch["obs"], batch["state"], reward = step(jax.random.split(key, envs), batch["obs"],
+                                                    batch["state"], dyn)
+        return reward
+
+    return do_reset, do_step, params.n_robots
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--base", required=True, help="the commit to compare against")
+    parser.add_argument("--envs", type=int, default=1024)
+    parser.add_argument("--rounds", type=int, default=4)
+    parser.add_argument("--steps", type=int, default=6)
+    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    args = parser.parse_args()
+    overrides = ["world.size=50", "robots.count=3", *args.set]
+    with tempfile.TemporaryDirectory() as tmp:
+        export_package(args.base, tmp)
+        sys.path.insert(0, tmp)
+        versions = {"base": team_stepper(_BASE_PACKAGE, overrides, args.envs),
+                    "tree": team_stepper("jaxmripp", overrides, args.envs)}
+        wall = {name: [] for name in versions}
+        cpu = {name: [] for name in versions}
+        for reset, step, _ in versions.values():  # compile both first
+            reset()
+            jax.block_until_ready(step())
+        order = list(versions)
+        for _ in range(args.rounds):
+            for reset, step, _ in versions.values():
+                reset()
+                step()
+                jax.block_until_ready(step())
+            for _ in range(args.steps):
+                order.reverse()
+                for name in order:
+                    start, cpu_start = time.perf_counter(), time.process_time()
+                    jax.block_until_ready(versions[name][1]())
+                    wall[name].append(time.perf_counter() - start)
+                    cpu[name].append(time.process_time() - cpu_start)
+    robots = versions["tree"][2]
+    common = dict(envs=args.envs, robots=robots, base=args.base, samples=len(wall["tree"]),
+                  backend=jax.default_backend())
+    median = {name: statistics.median(times) for name, times in wall.items()}
+    for name in versions:
+        emit(f"env_ab.step_s.{name}", median[name], "s", **common,
+             agent_steps_per_s=round(args.envs * robots / median[name]))
+    emit("env_ab.wall_ratio", median["tree"] / median["base"], "tree/base", **common)
+    emit("env_ab.cpu_ratio", statistics.median(cpu["tree"]) / statistics.median(cpu["base"]),
+         "tree/base", **common)
+
+
+if __name__ == "__main__":
+    main()
