@@ -88,10 +88,11 @@ def run_trial(world_key: jax.Array, trial_key: jax.Array, params: EnvParams,
 
 
 def auto_batch(params: EnvParams, memory_bytes: float = 1.5e9) -> int:
-    """Episodes per vmapped call such that the per-robot maps stay within memory_bytes.
+    """Episodes per vmapped call such that the robots' maps stay within memory_bytes.
 
-    An episode holds N occupancy maps of G^3 bytes; the scan keeps about four copies
-    alive (carry, step input / output, the reset state).
+    An episode's state holds a team map of W G^3 bytes (`sim.maps`), and planners that
+    read the robots' int8 maps derive N G^3 bytes; the sizing leaves room for four copies
+    of the latter (carry, step input / output, the reset state), as if the maps were int8.
     """
     per_episode = 4 * params.n_robots * params.size ** 3 + 1e5
     return max(1, int(memory_bytes // per_episode))
