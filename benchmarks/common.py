@@ -7,6 +7,7 @@ eval.py do (jaxmripp.allocator), so benchmarks time what training runs.
 from __future__ import annotations
 
 import argparse
+import importlib
 import json
 import statistics
 import sys
@@ -68,11 +69,12 @@ def batch_arguments(description: str) -> argparse.ArgumentParser:
 
 class RandomTeamStepper:
     """A batch of environments stepped by the random planner: `reset()` then `step()`,
-    one jitted, vmapped team step with the state donated (what env.py and scale.py time)."""
+    one jitted, vmapped team step with the state donated (what env.py and scale.py time).
+    `package` names the simulator package (env_ab.py steps another commit's copy)."""
 
-    def __init__(self, params, dyn, envs: int, seed: int = 0):
-        from jaxmripp.evaluation import baselines  # noqa: PLC0415
-        from jaxmripp.sim import env as envmod  # noqa: PLC0415
+    def __init__(self, params, dyn, envs: int, seed: int = 0, package: str = "jaxmripp"):
+        baselines = importlib.import_module(f"{package}.evaluation.baselines")
+        envmod = importlib.import_module(f"{package}.sim.env")
 
         self.params, self.dyn, self.envs = params, dyn, envs
         self.key = jax.random.PRNGKey(seed + 1)

@@ -36,7 +36,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import jax  # noqa: E402
 
-from common import emit  # noqa: E402
+from common import RandomTeamStepper, emit  # noqa: E402
 
 _BASE_PACKAGE = "jaxmripp_base"
 
@@ -64,39 +64,13 @@ def export_package(commit: str, into: str) -> None:
                 out.write(data)
 
 
-def team_stepper(package: str, overrides: list[str], envs: int):
-    """(reset, step) of a vmapped, jitted random-planner team step of `package`."""
+def build_stepper(package: str, overrides: list[str], envs: int) -> RandomTeamStepper:
+    """The random-planner team step of `package` on the benchmarked setting."""
     config = importlib.import_module(f"{package}.config")
-    envmod = importlib.import_module(f"{package}.sim.env")
     params_mod = importlib.import_module(f"{package}.sim.params")
-    baselines = importlib.import_module(f"{package}.evaluation.baselines")
     cfg = config.load(None, overrides)
-    params = params_mod.EnvParams.from_config(cfg)
-    dyn = params_mod.DynamicParams.from_config(cfg)
-    planner = baselines.random_planner()
-    reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)))
-
-    def team_step(key, obs, state, dyn):
-        key_act, key_step = jax.random.split(key)
-        _, actions = planner.act(key_act, None, obs, state, dyn)
-        obs, state, reward, _, _ = envmod.step(key_step, state, actions, params, dyn)
-        return obs, state, reward
-
-    step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)), donate_argnums=(1, 2))
-    keys = jax.random.split(jax.random.PRNGKey(0), envs)
-    batch = {}
-
-    def do_reset():
-        batch["obs"], batch["state"] = jax.block_until_ready(reset(keys, dyn))
-        batch["key"] = jax.random.PRNGKey(1)
-
-    def do_step():
-        batch["key"], key = jax.random.split(batch["key"])
-        batch["obs"], batch["state"], reward = step(jax.random.split(key, envs), batch["obs"],
-                                                    batch["state"], dyn)
-        return reward
-
-    return do_reset, do_step, params.n_robots
+    return RandomTeamStepper(params_mod.EnvParams.from_config(cfg),
+                             params_mod.DynamicParams.from_config(cfg), envs, package=package)
 
 
 def main() -> None:
@@ -111,27 +85,27 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         export_package(args.base, tmp)
         sys.path.insert(0, tmp)
-        versions = {"base": team_stepper(_BASE_PACKAGE, overrides, args.envs),
-                    "tree": team_stepper("jaxmripp", overrides, args.envs)}
+        versions = {"base": build_stepper(_BASE_PACKAGE, overrides, args.envs),
+                    "tree": build_stepper("jaxmripp", overrides, args.envs)}
         wall = {name: [] for name in versions}
         cpu = {name: [] for name in versions}
-        for reset, step, _ in versions.values():  # compile both first
-            reset()
-            jax.block_until_ready(step())
+        for stepper in versions.values():  # compile both first
+            stepper.reset()
+            jax.block_until_ready(stepper.step())
         order = list(versions)
         for _ in range(args.rounds):
-            for reset, step, _ in versions.values():
-                reset()
-                step()
-                jax.block_until_ready(step())
+            for stepper in versions.values():
+                stepper.reset()
+                stepper.step()
+                jax.block_until_ready(stepper.step())
             for _ in range(args.steps):
                 order.reverse()
                 for name in order:
                     start, cpu_start = time.perf_counter(), time.process_time()
-                    jax.block_until_ready(versions[name][1]())
+                    jax.block_until_ready(versions[name].step())
                     wall[name].append(time.perf_counter() - start)
                     cpu[name].append(time.process_time() - cpu_start)
-    robots = versions["tree"][2]
+    robots = versions["tree"].params.n_robots
     common = dict(envs=args.envs, robots=robots, base=args.base, samples=len(wall["tree"]),
                   backend=jax.default_backend())
     median = {name: statistics.median(times) for name, times in wall.items()}

@@ -119,8 +119,9 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     truncate = params.safety.flight == "truncate"
 
     def fly(start, end, robot):
+        own_map = maps.robot_map(state.team_map, robot)
+
         def unknown(v):
-            own_map = maps.robot_map(state.team_map, robot)
             return geometry.read_codes(own_map, geometry.linear_index(v, size)) != FREE
 
         def building(v):

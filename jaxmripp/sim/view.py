@@ -90,9 +90,9 @@ def _marked_map(occupancy: jax.Array, near: jax.Array, sensor: SensorConfig,
     return _marked_code(occupancy, near[:, :, None], z, sensor).reshape(-1)
 
 
-def _map_reader(marked: jax.Array, size: int):
+def _map_reader(marked: jax.Array):
     """The `_codes` reader of one marked map, flat (G**3,)."""
-    return lambda x, y, z: take_flat(marked, (x * size + y) * size + z)
+    return lambda flat, x, y, z: take_flat(marked, flat)
 
 
 def _sample_major(sensor: SensorConfig, size: int) -> tuple[np.ndarray, np.ndarray]:
@@ -111,19 +111,20 @@ def _total_weight(sensor: SensorConfig, size: int) -> int:
 def _codes(read, camera: jax.Array, offsets: jax.Array,
            size: int) -> tuple[jax.Array, jax.Array]:
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
-    voxel indices and marked codes, read by `read(x, y, z)` at the clipped voxels,
+    voxel indices and marked codes, read by `read(flat, x, y, z)` at the clipped voxels,
     OCCUPIED outside the grid."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
     x, y, z = (jnp.clip(v, 0, size - 1) for v in (x, y, z))
-    return (x * size + y) * size + z, jnp.where(inside, read(x, y, z), jnp.int8(OCCUPIED))
+    flat = (x * size + y) * size + z
+    return flat, jnp.where(inside, read(flat, x, y, z), jnp.int8(OCCUPIED))
 
 
 def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig,
                size: int) -> tuple[jax.Array, jax.Array]:
     """One robot's marked map, camera voxels (K, 3) -> the integer sums (unknown, facade),
     each (K, 4) int32, of the gain samples' weights."""
-    return _heading_sums(_ray_sums(_map_reader(marked, size), camera, sensor, size))
+    return _heading_sums(_ray_sums(_map_reader(marked), camera, sensor, size))
 
 
 def _ray_sums(read, camera: jax.Array, sensor: SensorConfig,
@@ -226,21 +227,20 @@ def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Ar
     near = near.reshape(-1)
 
     def one_chunk(i, sums):
-        robot = (jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk) // per_robot)[:, None]
+        at = jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk)
+        robot = (at // per_robot)[:, None]
 
-        def read(x, y, z):
-            code = maps.codes_at(words, robot % n_robots,
-                                 (robot // n_robots) * cells + (x * size + y) * size + z)
+        def read(flat, x, y, z):
+            code = maps.codes_at(words, robot % n_robots, (robot // n_robots) * cells + flat)
             return _marked_code(code, take_flat(near, (robot * size + x) * size + y), z,
                                 sensor)
 
-        at = jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk)
         part = _ray_sums(read, camera[at], sensor, size)
         return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
                      for s, p in zip(sums, part))
 
     shapes = jax.eval_shape(
-        lambda c: _ray_sums(lambda x, y, z: jnp.zeros(x.shape, jnp.int8), c, sensor, size),
+        lambda c: _ray_sums(lambda flat, *_: jnp.zeros(flat.shape, jnp.int8), c, sensor, size),
         camera[:chunk])
     empty = tuple(jnp.zeros((chunk * _CHUNKS, *x.shape[1:]), x.dtype) for x in shapes)
     sums = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk, empty)
@@ -297,7 +297,7 @@ def unknown_in_view(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     offsets, _ = _sample_major(sensor, size)
     camera = geometry.voxel_of(position, size)
     marked = _marked_map(occupancy, facade_tops(top, sensor), sensor, size)
-    flat, code = _codes(_map_reader(marked, size), camera, jnp.asarray(offsets)[heading],
+    flat, code = _codes(_map_reader(marked), camera, jnp.asarray(offsets)[heading],
                         size)  # (S, R)
     blocked = jnp.cumsum(code == OCCUPIED, axis=0) - (code == OCCUPIED) > 0
     unknown = ~blocked & ((code == UNKNOWN) | (code == FACADE))
