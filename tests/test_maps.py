@@ -8,7 +8,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp.sim import maps, sensing
+from jaxmripp.sim import geometry, maps, sensing
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 G = 5
@@ -69,6 +69,24 @@ def test_pack_inverts_robot_maps(n):
     team = maps.pack(jnp.asarray(robot_maps), jnp.asarray(solid))
     np.testing.assert_array_equal(maps.buildings(team), solid)
     np.testing.assert_array_equal(maps.robot_maps(team, n), robot_maps)
+
+
+@pytest.mark.parametrize("n", [3, 9])
+def test_a_robot_map_reads_as_its_int8_map(n):
+    rng = np.random.default_rng(4)
+    _, solid = _truth(rng)
+    known = rng.random((n, G, G, G)) < 0.4
+    robot_maps = np.where(known, np.where(solid, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
+    team = maps.pack(jnp.asarray(robot_maps), jnp.asarray(solid))
+    flat = jnp.asarray(rng.integers(0, G**3, 50), jnp.int32)
+    for robot in (0, n - 1):
+        reader = maps.robot_map(team, robot)
+        assert isinstance(reader, geometry.CodeReader)
+        assert not isinstance(jnp.asarray(robot_maps[robot]), geometry.CodeReader)
+        np.testing.assert_array_equal(geometry.read_codes(reader, flat),
+                                      geometry.read_codes(jnp.asarray(robot_maps[robot]), flat))
+        np.testing.assert_array_equal(geometry.read_codes(reader, flat),
+                                      robot_maps[robot].reshape(-1)[np.asarray(flat)])
 
 
 def test_observe_and_merge_trace_once_and_keep_the_shape():

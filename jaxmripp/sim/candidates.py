@@ -40,7 +40,7 @@ def sample(
     position: jax.Array,
     heading: jax.Array,
     budget_left: jax.Array,
-    occupancy,
+    occupancy: geometry.Map,
     others: jax.Array,
     others_known: jax.Array,
     cand: CandidateConfig,
@@ -57,7 +57,7 @@ def sample(
       heading: () int32 its heading index.
       budget_left: () float32 its remaining path budget.
       occupancy: its own map, (G, G, G) int8 codes (geometry.FREE/UNKNOWN/OCCUPIED) or a
-        `sim.maps.RobotMap` (`geometry.read_codes`).
+        `geometry.CodeReader` such as `sim.maps.RobotMap`.
       others: (N, 3) positions of all robots (the caller's own row is ignored if masked).
       others_known: (N,) bool robots this one can hear (within radio range); False for self.
       cand: static configuration (shapes: K positions, oversampling, shell).
@@ -81,7 +81,7 @@ def sample(
     n_robots = others.shape[0]
     chex.assert_shape(position, (3,))
     chex.assert_shape([heading, budget_left], ())
-    if not hasattr(occupancy, "codes"):
+    if not isinstance(occupancy, geometry.CodeReader):
         chex.assert_shape(occupancy, (size, size, size))
     chex.assert_shape(others, (n_robots, 3))
     chex.assert_shape(others_known, (n_robots,))

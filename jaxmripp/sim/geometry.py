@@ -7,6 +7,8 @@ here for the simulation's modules.
 
 from __future__ import annotations
 
+from typing import Protocol, Union, runtime_checkable
+
 import jax
 import jax.numpy as jnp
 
@@ -116,13 +118,26 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
     return voxels, entry.astype(jnp.float32), complete
 
 
-def read_codes(grid, flat: jnp.ndarray) -> jnp.ndarray:
-    """The codes of a map at flat voxel indices: `grid` is a (G, G, G) map of codes or a
-    map with a `codes(flat)` reader (a robot's view of its team map, `sim.maps.RobotMap`)."""
-    return grid.codes(flat) if hasattr(grid, "codes") else take_flat(grid.reshape(-1), flat)
+@runtime_checkable
+class CodeReader(Protocol):
+    """A map read through its codes at flat voxel indices, without being written out as an
+    int8 grid (a robot's view of its team map, `sim.maps.RobotMap`)."""
+
+    def codes(self, flat: jax.Array) -> jax.Array: ...
 
 
-def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid, size: int,
+# What the map readers below take: a (G, G, G) int8 grid of codes or a CodeReader.
+Map = Union[jax.Array, CodeReader]
+
+
+def read_codes(grid: Map, flat: jnp.ndarray) -> jnp.ndarray:
+    """The codes of a map at flat voxel indices."""
+    if isinstance(grid, CodeReader):
+        return grid.codes(flat)
+    return take_flat(grid.reshape(-1), flat)
+
+
+def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid: Map, size: int,
                     max_length: float) -> jnp.ndarray:
     """(3,), (M, 3), a map (`read_codes`) -> (M, V) the codes of every traversed voxel, and
     (M,) whether each list is complete (see `traverse`)."""
@@ -131,14 +146,14 @@ def traversed_codes(start: jnp.ndarray, ends: jnp.ndarray, grid, size: int,
     return read_codes(grid, flat), complete
 
 
-def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy, size: int,
+def known_free(start: jnp.ndarray, ends: jnp.ndarray, occupancy: Map, size: int,
                max_length: float) -> jnp.ndarray:
     """(3,), (M, 3), a map (`read_codes`) -> (M,) True where every traversed voxel is FREE."""
     codes, complete = traversed_codes(start, ends, occupancy, size, max_length)
     return jnp.all(codes == FREE, axis=-1) & complete
 
 
-def not_mapped_occupied(start: jnp.ndarray, ends: jnp.ndarray, occupancy, size: int,
+def not_mapped_occupied(start: jnp.ndarray, ends: jnp.ndarray, occupancy: Map, size: int,
                         max_length: float) -> jnp.ndarray:
     """(3,), (M, 3), a map (`read_codes`) -> (M,) True where no traversed voxel is
     OCCUPIED."""

@@ -102,8 +102,9 @@ def codes_at(words: jax.Array, robot: jax.Array, cell: jax.Array) -> jax.Array:
 
 @struct.dataclass
 class RobotMap:
-    """One robot's map as read from its team map (what `geometry.read_codes` takes in place
-    of an int8 map): its codes at flat voxel indices, one byte read each."""
+    """One robot's map as read from its team map (a `geometry.CodeReader`, taken by the
+    map readers in place of an int8 map): its codes at flat voxel indices, one byte read
+    each."""
 
     words: jax.Array  # (W, G**3) uint8 the team map
     robot: jax.Array  # () int32
