@@ -233,6 +233,28 @@ def test_shared_maps_of_a_large_team_match_the_union(relay):
         np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
 
 
+def test_a_batch_of_large_team_maps_merges_each_map_by_its_own_links():
+    """Seventeen robots (three bytes per voxel), four environments vmapped: all linked, two
+    components, nobody linked, random single-hop contacts. Robots that hear the same set
+    are merged in one pass, whose bits span every byte."""
+    rng = np.random.default_rng(5)
+    n, envs = 17, 4
+    eye = np.eye(n, dtype=bool)
+    halves = np.arange(n)[:, None] < 9
+    random = rng.random((n, n)) < 0.15
+    linked = np.stack([~eye, (halves == halves.T) & ~eye, np.zeros((n, n), bool),
+                       (random | random.T) & ~eye])
+    worlds = [consistent_maps(rng, n, 4) for _ in range(envs)]
+    teams = jnp.asarray(np.stack([w[2] for w in worlds]))
+    merged = jax.jit(jax.vmap(maps.merge))(teams, jnp.asarray(linked))
+    for e, (truth, robot_maps, team, _, _) in enumerate(worlds):
+        np.testing.assert_array_equal(merged[e], maps.merge(jnp.asarray(team), linked[e]))
+        decoded = np.asarray(maps.robot_maps(merged[e], n))
+        for i in range(n):
+            known = np.any(robot_maps[linked[e, i] | eye[i]] != 1, axis=0)
+            np.testing.assert_array_equal(decoded[i], np.where(known, truth, 1))
+
+
 def test_shared_maps_without_contact_change_nothing():
     rng = np.random.default_rng(1)
     _, _, team, tops, _ = consistent_maps(rng, 3, 5)

@@ -142,26 +142,79 @@ def merge(team: jax.Array, linked: jax.Array) -> jax.Array:
     hears knew before the merge: the map merge of `jaxmripp.spec.sharing`.
 
     A robot's new bit is whether a robot it hears (or itself) has its bit set. With one
-    word per voxel (N <= 7) that is one elementwise pass over the map, in place; larger
-    teams update one receiver's word at a time."""
+    word per voxel (N <= 7) that is one elementwise pass over the map, in place. Larger
+    teams take one pass per distinct set of robots heard (`_merge_by_sets`)."""
     n, count = linked.shape[0], team.shape[0]
+    if count > 1:
+        return _merge_by_sets(team, linked)
+    bit = _bit_places(n)[1]
+    masks = _heard_bits(linked, count)
+    return team | functools.reduce(jnp.bitwise_or, [
+        jnp.where(_hears(team, masks[i]), jnp.uint8(bit[i]), jnp.uint8(0)) for i in range(n)])
+
+
+def _heard_bits(linked: jax.Array, count: int) -> jax.Array:
+    """(N, N) links -> (N, W) uint8: per receiver and word, the bits of the robots it hears
+    and its own."""
+    n = linked.shape[0]
     word, bit = _bit_places(n)
     heard = jnp.where(linked | jnp.eye(n, dtype=bool), jnp.asarray(bit, jnp.int32)[None, :], 0)
-    # Per receiver and word, the bits of the robots it hears (distinct bits: sum = or).
     in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
-    masks = jnp.sum(jnp.where(in_word[None], heard[:, :, None], 0), axis=1).astype(jnp.uint8)
+    # Distinct bits: their sum is their union.
+    return jnp.sum(jnp.where(in_word[None], heard[:, :, None], 0), axis=1).astype(jnp.uint8)
 
-    def hears(i) -> jax.Array:  # (G, G, G) bool
-        return jnp.any((team & masks[i][:, None, None, None]) != 0, axis=0)
 
-    if count == 1:
-        return team | functools.reduce(jnp.bitwise_or, [
-            jnp.where(hears(i), jnp.uint8(bit[i]), jnp.uint8(0)) for i in range(n)])[None]
+def _hears(team: jax.Array, heard: jax.Array) -> jax.Array:
+    """(G, G, G) bool: a robot with heard bits (W,) hears of the voxel."""
+    return jnp.any((team & heard[:, None, None, None]) != 0, axis=0)
+
+
+@jax.custom_batching.custom_vmap
+def _merge_by_sets(team: jax.Array, linked: jax.Array) -> jax.Array:
+    """`merge` with W > 1 words: robots that hear the same set learn the same voxels (with
+    relay or global radio a connected component is one set), so each distinct set takes
+    one pass over the map, for all its robots at once, and a robot that hears nobody
+    takes none. The passes are skipped by conditionals, so a batch of maps is merged map
+    by map (a vmapped conditional would run every pass)."""
+    n, count = linked.shape[0], team.shape[0]
+    word, bit = _bit_places(n)
+    masks = _heard_bits(linked, count)
+    same = jnp.all(masks[:, None, :] == masks[None, :, :], axis=-1)  # (N, N) equal sets
+    first = ~jnp.any(same & np.tri(n, k=-1, dtype=bool), axis=1)  # lowest index of its set
+    learns = first & jnp.any(linked & ~jnp.eye(n, dtype=bool), axis=1)
+    # Per set (by its first robot) and word, the bits of the robots that hear it.
+    in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
+    members = jnp.sum(jnp.where(same[:, :, None] & in_word[None],
+                                jnp.asarray(bit, jnp.int32)[None, :, None], 0),
+                      axis=1).astype(jnp.uint8)  # (N, W)
 
     def receive(i, merged):
-        w = jnp.asarray(word, jnp.int32)[i]
-        row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
-            | jnp.where(hears(i), jnp.asarray(bit)[i], jnp.uint8(0))
-        return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
+        def learn(merged):
+            new = _hears(team, masks[i])  # from the map before the merge
+
+            def put(w, merged):
+                row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
+                    | jnp.where(new, members[i, w], jnp.uint8(0))
+                return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
+
+            def into_word(w, merged):
+                return jax.lax.cond(members[i, w] != 0, put, lambda _, m: m, w, merged)
+
+            return jax.lax.fori_loop(0, count, into_word, merged)
+
+        return jax.lax.cond(learns[i], learn, lambda m: m, merged)
 
     return jax.lax.fori_loop(0, n, receive, team)
+
+
+@_merge_by_sets.def_vmap
+def _merge_by_sets_vmap(axis_size, in_batched, team, linked):
+    team, linked = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
+                    for x, b in zip((team, linked), in_batched)]
+
+    def one(e, merged):
+        own = _merge_by_sets(jax.lax.dynamic_index_in_dim(merged, e, keepdims=False),
+                             linked[e])
+        return jax.lax.dynamic_update_index_in_dim(merged, own, e, 0)
+
+    return jax.lax.fori_loop(0, axis_size, one, team), True
