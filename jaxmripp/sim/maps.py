@@ -153,15 +153,21 @@ def merge(team: jax.Array, linked: jax.Array) -> jax.Array:
         jnp.where(_hears(team, masks[i]), jnp.uint8(bit[i]), jnp.uint8(0)) for i in range(n)])
 
 
+def _bits_by_word(related: jax.Array, count: int) -> jax.Array:
+    """(N, N) bool -> (N, W) uint8: per robot i and word, the bits of the robots j with
+    related[i, j]."""
+    word, bit = _bit_places(related.shape[0])
+    in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
+    # Distinct bits: their sum is their union.
+    return jnp.sum(jnp.where(related[:, :, None] & in_word[None],
+                             jnp.asarray(bit, jnp.int32)[None, :, None], 0),
+                   axis=1).astype(jnp.uint8)
+
+
 def _heard_bits(linked: jax.Array, count: int) -> jax.Array:
     """(N, N) links -> (N, W) uint8: per receiver and word, the bits of the robots it hears
     and its own."""
-    n = linked.shape[0]
-    word, bit = _bit_places(n)
-    heard = jnp.where(linked | jnp.eye(n, dtype=bool), jnp.asarray(bit, jnp.int32)[None, :], 0)
-    in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
-    # Distinct bits: their sum is their union.
-    return jnp.sum(jnp.where(in_word[None], heard[:, :, None], 0), axis=1).astype(jnp.uint8)
+    return _bits_by_word(linked | jnp.eye(linked.shape[0], dtype=bool), count)
 
 
 def _hears(team: jax.Array, heard: jax.Array) -> jax.Array:
@@ -177,16 +183,11 @@ def _merge_by_sets(team: jax.Array, linked: jax.Array) -> jax.Array:
     takes none. The passes are skipped by conditionals, so a batch of maps is merged map
     by map (a vmapped conditional would run every pass)."""
     n, count = linked.shape[0], team.shape[0]
-    word, bit = _bit_places(n)
     masks = _heard_bits(linked, count)
     same = jnp.all(masks[:, None, :] == masks[None, :, :], axis=-1)  # (N, N) equal sets
     first = ~jnp.any(same & np.tri(n, k=-1, dtype=bool), axis=1)  # lowest index of its set
     learns = first & jnp.any(linked & ~jnp.eye(n, dtype=bool), axis=1)
-    # Per set (by its first robot) and word, the bits of the robots that hear it.
-    in_word = np.arange(count)[None, :] == word[:, None]  # (N, W)
-    members = jnp.sum(jnp.where(same[:, :, None] & in_word[None],
-                                jnp.asarray(bit, jnp.int32)[None, :, None], 0),
-                      axis=1).astype(jnp.uint8)  # (N, W)
+    members = _bits_by_word(same, count)  # per robot: the bits of the robots of its set
 
     def receive(i, merged):
         def learn(merged):
