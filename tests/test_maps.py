@@ -60,13 +60,18 @@ def test_observing_under_vmap_equals_observing_each_environment():
         np.testing.assert_array_equal(batched[e], maps.observe(empty[e], voxels[e]))
 
 
-@pytest.mark.parametrize("n", [3, 9])
-def test_pack_inverts_robot_maps(n):
-    rng = np.random.default_rng(3)
+def _random_team(rng, n):
+    """n int8 maps that each know a random part of one random truth, its building voxels
+    (G, G, G) bool and their team map."""
     _, solid = _truth(rng)
     known = rng.random((n, G, G, G)) < 0.4
     robot_maps = np.where(known, np.where(solid, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
-    team = maps.pack(jnp.asarray(robot_maps), jnp.asarray(solid))
+    return robot_maps, solid, maps.pack(jnp.asarray(robot_maps), jnp.asarray(solid))
+
+
+@pytest.mark.parametrize("n", [3, 9])
+def test_pack_inverts_robot_maps(n):
+    robot_maps, solid, team = _random_team(np.random.default_rng(3), n)
     np.testing.assert_array_equal(maps.buildings(team), solid)
     np.testing.assert_array_equal(maps.robot_maps(team, n), robot_maps)
 
@@ -74,10 +79,7 @@ def test_pack_inverts_robot_maps(n):
 @pytest.mark.parametrize("n", [3, 9])
 def test_a_robot_map_reads_as_its_int8_map(n):
     rng = np.random.default_rng(4)
-    _, solid = _truth(rng)
-    known = rng.random((n, G, G, G)) < 0.4
-    robot_maps = np.where(known, np.where(solid, OCCUPIED, FREE), UNKNOWN).astype(np.int8)
-    team = maps.pack(jnp.asarray(robot_maps), jnp.asarray(solid))
+    robot_maps, _, team = _random_team(rng, n)
     flat = jnp.asarray(rng.integers(0, G**3, 50), jnp.int32)
     for robot in (0, n - 1):
         reader = maps.robot_map(team, robot)
