@@ -54,8 +54,8 @@ def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
 
 def nearby_tops(top: jax.Array) -> jax.Array:
     """(G, G) -> (G, G) the largest top of each column and its four neighbours."""
-    # Shifted copies in the tops' own int8: XLA:CPU runs the int32 conversion of a batch
-    # of tops (E, N, G, G) twenty times slower than the maxima themselves.
+    # Shifted copies in the tops' own int8: on XLA:CPU an int32 conversion of a batch of
+    # tops (E, N, G, G) costs many times what the maxima cost.
     edge = jnp.zeros_like(top)
     shifted = [jnp.concatenate([top[1:], edge[:1]]), jnp.concatenate([edge[:1], top[:-1]]),
                jnp.concatenate([top[:, 1:], edge[:, :1]], axis=1),
