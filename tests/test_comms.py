@@ -233,10 +233,13 @@ def test_shared_maps_of_a_large_team_match_the_union(relay):
         np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
 
 
-def test_a_batch_of_large_team_maps_merges_each_map_by_its_own_links():
+@pytest.mark.parametrize("map_by_map", [False, True])
+def test_a_batch_of_large_team_maps_merges_each_map_by_its_own_links(map_by_map, monkeypatch):
     """Seventeen robots (three bytes per voxel), four environments vmapped: all linked, two
-    components, nobody linked, random single-hop contacts. Robots that hear the same set
-    are merged in one pass, whose bits span every byte."""
+    components, nobody linked, random single-hop contacts; merged receiver by receiver
+    (small maps) or map by map, where robots that hear the same set take one pass whose
+    bits span every byte."""
+    monkeypatch.setattr(maps, "_MAP_BY_MAP_VOXELS", 0 if map_by_map else 10**9)
     rng = np.random.default_rng(5)
     n, envs = 17, 4
     eye = np.eye(n, dtype=bool)

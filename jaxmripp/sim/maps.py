@@ -143,7 +143,8 @@ def merge(team: jax.Array, linked: jax.Array) -> jax.Array:
 
     A robot's new bit is whether a robot it hears (or itself) has its bit set. With one
     word per voxel (N <= 7) that is one elementwise pass over the map, in place. Larger
-    teams take one pass per distinct set of robots heard (`_merge_by_sets`)."""
+    teams take one pass per distinct set of robots heard (`_merge_by_sets`), or, for a
+    batch of small maps, one pass per robot across the batch (`_merge_by_receivers`)."""
     n, count = linked.shape[0], team.shape[0]
     if count > 1:
         return _merge_by_sets(team, linked)
@@ -208,10 +209,31 @@ def _merge_by_sets(team: jax.Array, linked: jax.Array) -> jax.Array:
     return jax.lax.fori_loop(0, n, receive, team)
 
 
+def _merge_by_receivers(team: jax.Array, linked: jax.Array) -> jax.Array:
+    """`merge` with W > 1 words, receiver by receiver with no conditionals: each takes a
+    pass, so a vmapped batch runs as one (the batch rule's choice for small maps)."""
+    word, bit = _bit_places(linked.shape[0])
+    masks = _heard_bits(linked, team.shape[0])
+
+    def receive(i, merged):
+        w = jnp.asarray(word, jnp.int32)[i]
+        row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
+            | jnp.where(_hears(team, masks[i]), jnp.asarray(bit)[i], jnp.uint8(0))
+        return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
+
+    return jax.lax.fori_loop(0, linked.shape[0], receive, team)
+
+
+# Below this many voxels a map's passes cost less than stepping through a batch map by map.
+_MAP_BY_MAP_VOXELS = 400_000
+
+
 @_merge_by_sets.def_vmap
 def _merge_by_sets_vmap(axis_size, in_batched, team, linked):
     team, linked = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
                     for x, b in zip((team, linked), in_batched)]
+    if team[0, 0].size < _MAP_BY_MAP_VOXELS:
+        return jax.vmap(_merge_by_receivers)(team, linked), True
 
     def one(e, merged):
         own = _merge_by_sets(jax.lax.dynamic_index_in_dim(merged, e, keepdims=False),
