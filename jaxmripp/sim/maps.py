@@ -176,6 +176,13 @@ def _hears(team: jax.Array, heard: jax.Array) -> jax.Array:
     return jnp.any((team & heard[:, None, None, None]) != 0, axis=0)
 
 
+def _set_bits(team: jax.Array, word: jax.Array, where: jax.Array, bits: jax.Array) -> jax.Array:
+    """The team map with `bits` (uint8) set in word `word` where `where` (G, G, G) holds."""
+    row = jax.lax.dynamic_index_in_dim(team, word, keepdims=False) \
+        | jnp.where(where, bits, jnp.uint8(0))
+    return jax.lax.dynamic_update_index_in_dim(team, row, word, 0)
+
+
 @jax.custom_batching.custom_vmap
 def _merge_by_sets(team: jax.Array, linked: jax.Array) -> jax.Array:
     """`merge` with W > 1 words: robots that hear the same set learn the same voxels (with
@@ -194,13 +201,10 @@ def _merge_by_sets(team: jax.Array, linked: jax.Array) -> jax.Array:
         def learn(merged):
             new = _hears(team, masks[i])  # from the map before the merge
 
-            def put(w, merged):
-                row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
-                    | jnp.where(new, members[i, w], jnp.uint8(0))
-                return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
-
             def into_word(w, merged):
-                return jax.lax.cond(members[i, w] != 0, put, lambda _, m: m, w, merged)
+                return jax.lax.cond(members[i, w] != 0,
+                                    lambda m: _set_bits(m, w, new, members[i, w]),
+                                    lambda m: m, merged)
 
             return jax.lax.fori_loop(0, count, into_word, merged)
 
@@ -216,10 +220,8 @@ def _merge_by_receivers(team: jax.Array, linked: jax.Array) -> jax.Array:
     masks = _heard_bits(linked, team.shape[0])
 
     def receive(i, merged):
-        w = jnp.asarray(word, jnp.int32)[i]
-        row = jax.lax.dynamic_index_in_dim(merged, w, keepdims=False) \
-            | jnp.where(_hears(team, masks[i]), jnp.asarray(bit)[i], jnp.uint8(0))
-        return jax.lax.dynamic_update_index_in_dim(merged, row, w, 0)
+        return _set_bits(merged, jnp.asarray(word, jnp.int32)[i], _hears(team, masks[i]),
+                         jnp.asarray(bit)[i])
 
     return jax.lax.fori_loop(0, linked.shape[0], receive, team)
 
