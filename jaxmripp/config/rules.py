@@ -87,6 +87,7 @@ RULES: dict[str, tuple] = {
     "gp.variance": _POSITIVE,
     "gp.noise": _range(1e-6, 10),
     "gp.eval_grid": _range(1, 16),
+    "gp.peer_rounds": _range(1, 255),
     "gp.catchup_rounds": _range(0, 64),
     "reward.alpha": _NONNEG,
     "reward.beta": _NONNEG,

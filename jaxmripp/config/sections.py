@@ -109,7 +109,11 @@ class GPConfig:
     variance: float = 1.0
     noise: float = 0.01
     eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
-    catchup_rounds: int = 1  # peer rounds per step beyond N - 1 (sim.feeding.feed_gps)
+    # Peer rounds per step (jaxmripp.spec.feeding): R = min(N - 1, peer_rounds) +
+    # catchup_rounds. The default never caps (robots.count <= 256); a cap makes a robot's
+    # feeding cost the same for any team size above peer_rounds + 1.
+    peer_rounds: int = 255
+    catchup_rounds: int = 1
     shared_utility: bool = False  # one utility GP per environment fed by all robots
 
 

@@ -1,8 +1,8 @@
 """One robot's GP feeding, in NumPy: the rule written in `jaxmripp.spec.feeding`.
 
-The rule (own pending pose first, then N - 1 + catchup_rounds peer rounds taking the
-oldest pending pose of the peer with the largest backlog, ties to the nearest offset) is
-stated once, in that module; this is its single-robot implementation, as
+The rule (own pending pose first, then R = min(N - 1, peer_rounds) + catchup_rounds peer
+rounds taking the oldest pending pose of the peer with the largest backlog, ties to the
+nearest offset) is stated once, in that module; this is its single-robot implementation, as
 `jaxmripp.sim.feeding.feed_gps` is its JAX one. The histories themselves stay with
 the planner (they are also what its radio sends); this class only remembers how much of
 each has gone into the GPs.
@@ -15,7 +15,7 @@ from typing import Mapping, Sequence
 import numpy as np
 
 from jaxmripp.runtime.gp import GaussianProcess
-from jaxmripp.spec.feeding import COMM_VALUE, OWN_PER_ROUND
+from jaxmripp.spec.feeding import COMM_VALUE, OWN_PER_ROUND, peer_rounds
 
 F32 = np.float32
 
@@ -25,17 +25,13 @@ def peer_order(robot_id: int, team_size: int) -> list[int]:
     return [(robot_id + offset) % team_size for offset in range(1, team_size)]
 
 
-def peer_rounds(team_size: int, catchup_rounds: int) -> int:
-    """R = N - 1 + catchup_rounds, none for a lone robot (it has nobody to catch up on)."""
-    return team_size - 1 + catchup_rounds if team_size > 1 else 0
-
-
 class FeedSchedule:
     """How many entries of each history robot `robot_id` has fed into its GPs."""
 
-    def __init__(self, robot_id: int, team_size: int, catchup_rounds: int):
+    def __init__(self, robot_id: int, team_size: int, peer_rounds_cap: int,
+                 catchup_rounds: int):
         self.order = peer_order(robot_id, team_size)
-        self.rounds = peer_rounds(team_size, catchup_rounds)
+        self.rounds = peer_rounds(team_size, peer_rounds_cap, catchup_rounds)
         self.own_fed = 0
         self.peer_fed: dict[int, int] = {j: 0 for j in self.order}
 

@@ -27,9 +27,12 @@ class GPSpec:
     noise: float
     catchup_rounds: int
     eval_grid: int
+    peer_rounds: int = 255  # exported before the cap existed: uncapped (N <= 256)
 
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
+_GP_DEFAULTS = {f.name: f.default for f in dataclasses.fields(GPSpec)
+                if f.default is not dataclasses.MISSING}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -143,7 +146,8 @@ class RuntimeSpec:
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
             sector_split=choice("radio", "sector_split", SECTOR_SPLITS, default="angle"),
-            gp=GPSpec(**{name: get("gp", name, kind) for name, kind in _GP_FIELDS.items()}),
+            gp=GPSpec(**{name: get("gp", name, kind, _GP_DEFAULTS.get(name))
+                         for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
             max_steps=get("episode", "max_steps", int),
             flight=flight,

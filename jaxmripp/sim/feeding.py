@@ -1,7 +1,7 @@
 """The GP feeding schedule: which known history entries enter which GP, each step.
 
 Each robot ingests its own newest pose first (its trace drop is r_e), then runs
-N - 1 + `catchup_rounds` peer rounds: in each it takes the oldest pending pose of the peer
+R = min(N - 1, `peer_rounds`) + `catchup_rounds` peer rounds: in each it takes the oldest pending pose of the peer
 with the largest backlog (ties: the nearest peer offset) into both GPs (the trace drop on
 the communication GP is r_c). A steady exchange needs N - 1 rounds; the rest drain a
 backlog after radio silence. Every step does the same fixed amount of O(H^2) work: the
@@ -19,6 +19,7 @@ import jax.numpy as jnp
 from jaxmripp.sim import gp
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.sim.types import EnvState
+from jaxmripp.spec.feeding import peer_rounds
 
 
 def relative_drop(before, after):
@@ -37,7 +38,8 @@ def feed_gps(state: EnvState, params: EnvParams):
 
     own_pending, own_pose, own_value = jax.vmap(lambda i: take(state.fed, i, i))(rows)
     fed = state.fed + jnp.diag(own_pending.astype(jnp.int32))
-    fed, pending, pose, value = _peer_rounds(state, fed, take, n, cfg.catchup_rounds)
+    rounds = peer_rounds(n, cfg.peer_rounds, cfg.catchup_rounds)
+    fed, pending, pose, value = _pick_peer_poses(state, fed, take, n, rounds)
     own = (own_pending, own_pose, own_value)
     peers = (pending, pose, value)
     if cfg.shared_utility:
@@ -58,13 +60,13 @@ def feed_gps(state: EnvState, params: EnvParams):
 _add_many = jax.vmap(gp.add_many, in_axes=(0, 0, 0, None, None, 0))
 
 
-def _peer_rounds(state: EnvState, fed, take, n: int, catchup: int):
+def _pick_peer_poses(state: EnvState, fed, take, n: int, rounds: int):
     """Picks the peers' poses of every round: (fed, pending, pose, value), each (N, R).
 
     The rounds only pick poses (index bookkeeping); each GP then takes them in blocks,
     each costing about one add instead of one per round (gp.add_many).
     """
-    if n == 1:  # a lone robot has no peers: no rounds
+    if rounds == 0:  # a lone robot has no peers
         return fed, jnp.zeros((n, 0), bool), jnp.zeros((n, 0, 4)), jnp.zeros((n, 0))
     rows = jnp.arange(n)
     peers = (rows[:, None] + jnp.arange(1, n)[None, :]) % n  # (N, N - 1) by offset
@@ -75,7 +77,7 @@ def _peer_rounds(state: EnvState, fed, take, n: int, catchup: int):
         pending, pose, value = jax.vmap(lambda i, jj: take(fed, i, jj))(rows, j)
         return fed.at[rows, j].add(pending.astype(jnp.int32)), (pending, pose, value)
 
-    fed, picked = jax.lax.scan(pick, fed, length=n - 1 + catchup)
+    fed, picked = jax.lax.scan(pick, fed, length=rounds)
     return (fed, *(jnp.swapaxes(x, 0, 1) for x in picked))
 
 
