@@ -14,7 +14,7 @@ the median wall and CPU time per step of each and their ratios (JSON lines):
 
 Usage (from the repository root):
     python benchmarks/env_ab.py --base COMMIT [--envs 1024] [--rounds 4] [--steps 6]
-        [--set key=value ...]
+        [--set key=value ...] [--tree-set key=value ...]
 """
 
 from __future__ import annotations
@@ -80,13 +80,17 @@ def main() -> None:
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--steps", type=int, default=6)
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("--tree-set", nargs="*", default=[],
+                        help="overrides for the working tree's side only (with --base HEAD: "
+                             "a setting against the same code without it)")
     args = parser.parse_args()
     overrides = ["world.size=50", "robots.count=3", *args.set]
     with tempfile.TemporaryDirectory() as tmp:
         export_package(args.base, tmp)
         sys.path.insert(0, tmp)
         versions = {"base": build_stepper(_BASE_PACKAGE, overrides, args.envs),
-                    "tree": build_stepper("jaxmripp", overrides, args.envs)}
+                    "tree": build_stepper("jaxmripp", [*overrides, *args.tree_set],
+                                          args.envs)}
         wall = {name: [] for name in versions}
         cpu = {name: [] for name in versions}
         for stepper in versions.values():  # compile both first

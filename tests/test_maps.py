@@ -10,6 +10,7 @@ import pytest
 
 from jaxmripp.sim import geometry, maps, sensing
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
+from test_sensing import empty_occupancy, update_occupancy
 
 G = 5
 
@@ -122,8 +123,8 @@ def test_team_map_updates_match_int8_maps_on_a_cast():
     position = jnp.asarray([[0.5, 0.5, 0.5], [0.2, 0.7, 0.4]], jnp.float32)
     casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
         w, position, jnp.asarray([0, 3]), SensorConfig(), size)
-    int8_maps = jax.vmap(sensing.update_occupancy)(
-        jnp.broadcast_to(sensing.empty_occupancy(size), (2, size, size, size)), casts)
+    int8_maps = jax.vmap(update_occupancy)(
+        jnp.broadcast_to(empty_occupancy(size), (2, size, size, size)), casts)
     # `observe` needs each robot's in-grid voxels distinct: a cast's are.
     for voxels in np.asarray(casts.voxels):
         inside = voxels[voxels < size**3]

@@ -13,6 +13,21 @@ import pytest
 from jaxmripp.sim import geometry, sensing, view, world
 from jaxmripp.config import SensorConfig, WorldConfig
 
+
+def update_occupancy(occupancy, result: sensing.CastResult):
+    """A robot's (G, G, G) int8 map with the observed voxels set to their true codes: the
+    reference the team map's bits (jaxmripp.sim.maps) must read as."""
+    size = occupancy.shape[0]
+    chex.assert_shape(occupancy, (size, size, size))
+    return sensing.scatter_set(occupancy.reshape(-1), result.voxels,
+                               result.values).reshape(occupancy.shape)
+
+
+def empty_occupancy(size: int):
+    """(G, G, G) int8 map with every voxel UNKNOWN."""
+    return jnp.full((size, size, size), geometry.UNKNOWN, jnp.int8)
+
+
 _cast = jax.jit(sensing.cast, static_argnums=(3, 4))
 _generate = jax.jit(world.generate, static_argnums=1)
 _FORWARD = geometry.HEADING_VECTORS.astype(int)
@@ -126,7 +141,7 @@ def cast_scene(w, heading=0, camera=CAMERA):
 
 
 def observed_codes(result, size=S) -> np.ndarray:
-    occupancy = sensing.update_occupancy(sensing.empty_occupancy(size), result)
+    occupancy = update_occupancy(empty_occupancy(size), result)
     return np.asarray(occupancy)
 
 
@@ -187,8 +202,8 @@ def test_facing_away_sees_nothing():
 def test_maps_match_truth_and_occupied_never_turns_free():
     w = random_world(1)
     truth = np.asarray(world.truth_occupancy(w, G))
-    update = jax.jit(sensing.update_occupancy, donate_argnums=0)
-    occupancy = sensing.empty_occupancy(G)
+    update = jax.jit(update_occupancy, donate_argnums=0)
+    occupancy = empty_occupancy(G)
     before = np.asarray(occupancy)
     for position, heading in free_poses(w, 12, seed=5):
         result = _cast(w, jnp.asarray(position), jnp.int32(heading), SENSOR, G)
@@ -238,12 +253,6 @@ def test_larger_worlds(size):
     np.testing.assert_array_equal(values[keep], truth[voxels[keep]])
     seen = np.asarray(result.seen)
     assert not seen[:, ~np.asarray(w.target_valid)].any()
-
-
-def test_empty_occupancy():
-    occupancy = sensing.empty_occupancy(S)
-    assert occupancy.shape == (S, S, S) and occupancy.dtype == jnp.int8
-    assert np.all(np.asarray(occupancy) == geometry.UNKNOWN)
 
 
 # ---------------------------------------------------------------------------------------
@@ -302,12 +311,12 @@ def test_vmap_over_envs_and_robots_matches_single_casts(model):
                 np.testing.assert_array_equal(x, y[e, r])
     # The batched update folds all maps into one flat scatter; it must equal per-map ones,
     # also when the maps are shared (unbatched) at the inner level.
-    empty = sensing.empty_occupancy(G)
-    maps = jax.jit(jax.vmap(jax.vmap(sensing.update_occupancy)))(
+    empty = empty_occupancy(G)
+    maps = jax.jit(jax.vmap(jax.vmap(update_occupancy)))(
         jnp.broadcast_to(empty, (2, 3, G, G, G)), result)
-    shared = jax.jit(jax.vmap(jax.vmap(sensing.update_occupancy, in_axes=(None, 0))))(
+    shared = jax.jit(jax.vmap(jax.vmap(update_occupancy, in_axes=(None, 0))))(
         jnp.broadcast_to(empty, (2, G, G, G)), result)
-    update = jax.jit(sensing.update_occupancy)
+    update = jax.jit(update_occupancy)
     for e in range(2):
         for r in range(3):
             single = update(empty, jax.tree.map(lambda x: x[e, r], result))

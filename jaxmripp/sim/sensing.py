@@ -342,18 +342,6 @@ scatter_max = _flat_scatter("max")
 scatter_add = _flat_scatter("add")
 
 
-def update_occupancy(occupancy: jax.Array, result: CastResult) -> jax.Array:
-    """(G, G, G) int8 map -> the map with the observed voxels set to their true codes."""
-    size = occupancy.shape[0]
-    chex.assert_shape(occupancy, (size, size, size))
-    return scatter_set(occupancy.reshape(-1), result.voxels, result.values).reshape(occupancy.shape)
-
-
-def empty_occupancy(size: int) -> jax.Array:
-    """(G, G, G) int8 map with every voxel UNKNOWN."""
-    return jnp.full((size, size, size), geometry.UNKNOWN, jnp.int8)
-
-
 def utility(result: CastResult) -> jax.Array:
     """int32 number of windows seen (per cast; batched results give one per cast)."""
     return jnp.sum(result.seen, axis=-1, dtype=jnp.int32)
