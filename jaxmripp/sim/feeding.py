@@ -1,12 +1,13 @@
 """The GP feeding schedule: which known history entries enter which GP, each step.
 
 Each robot ingests its own newest pose first (its trace drop is r_e), then runs
-R = min(N - 1, `peer_rounds`) + `catchup_rounds` peer rounds: in each it takes the oldest pending pose of the peer
-with the largest backlog (ties: the nearest peer offset) into both GPs (the trace drop on
-the communication GP is r_c). A steady exchange needs N - 1 rounds; the rest drain a
-backlog after radio silence. Every step does the same fixed amount of O(H^2) work: the
-rounds' poses enter each GP in blocks of up to gp.BLOCK points, masked where nothing is
-pending, and a per-robot utility GP takes the own pose as its block's first point.
+R = min(N - 1, `peer_rounds`) + `catchup_rounds` peer rounds: in each it takes the oldest
+pending pose of the peer with the largest backlog (ties: the nearest peer offset) into
+both GPs (the trace drop on the communication GP is r_c). A steady exchange needs N - 1
+rounds; the rest drain a backlog after radio silence. Every step does the same fixed
+amount of O(H^2) work: the rounds' poses enter each GP in blocks of up to gp.BLOCK points,
+masked where nothing is pending, and a per-robot utility GP takes the own pose as its
+block's first point.
 
 Only static parameters are read: the schedule's shape is fixed by N, H and the GP config.
 """

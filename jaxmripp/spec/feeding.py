@@ -19,12 +19,13 @@ sensing and radio exchange and before the candidates are scored, robot i:
    pose it just reached), its oldest pending own entry enters the utility GP. Own poses
    never enter the communication GP.
 2. Then exactly R = min(N - 1, gp.peer_rounds) + gp.catchup_rounds peer rounds
-   (`peer_rounds` below; R = 0 for a lone robot). In each round it picks the peer with the largest backlog know[i, j] - fed[i, j]; ties go
-   to the nearest peer offset, i.e. peers are ranked (i + 1) mod N, (i + 2) mod N, ...,
-   (i + N - 1) mod N and the first maximum in that ranking wins. If the picked peer has a
-   pending entry, its oldest pending entry enters the utility GP (with the peer's value)
-   and then the communication GP (with COMM_VALUE), and fed[i, j] grows by one;
-   otherwise (no backlog anywhere) the round adds nothing.
+   (`peer_rounds` below; R = 0 for a lone robot). In each round it picks the peer with
+   the largest backlog know[i, j] - fed[i, j]; ties go to the nearest peer offset, i.e.
+   peers are ranked (i + 1) mod N, (i + 2) mod N, ..., (i + N - 1) mod N and the first
+   maximum in that ranking wins. If the picked peer has a pending entry, its oldest
+   pending entry enters the utility GP (with the peer's value) and then the
+   communication GP (with COMM_VALUE), and fed[i, j] grows by one; otherwise (no backlog
+   anywhere) the round adds nothing.
 
 Why a fixed R: JAX needs static shapes, so every round does the same work; N - 1 rounds
 keep up with a steady exchange (each peer brings one pose per round) and the extra
