@@ -86,6 +86,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.buildings=400", "buildings fit"),
         ("ppo.algo=sac", "one of ippo, mappo"),
         ("gp.noise=0", "gp.noise: got 0.0"),
+        ("gp.peer_rounds=0", "gp.peer_rounds: got 0; allowed: a number in [1, 255]"),
         ("train.radio_ranges=[0.3, -1]", "train.radio_ranges: got [0.3, -1.0]; allowed: a list"),
         ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),
         ("train.blocks=3", "train.blocks: got 3; allowed: 0 or a divisor of the environments "
