@@ -8,6 +8,10 @@ is written once:
 - `flight`: safe flight -- known-free space, closest approach, intents, collisions;
 - `vectors`: 3-vector arithmetic that NumPy and JAX evaluate to the same bits;
 - `layout`: the policy's input columns (per candidate and per robot);
+- `feeding`: which poses enter a robot's GPs, in which order, and how many per round;
+- `sharing`: what robots in range learn of each other's maps;
+- `view`: the view-gain features' model of the sensor and the facades;
+- `sectors`: a division of the world among the team that needs no radio;
 - `protocol`: the radio message formats and their version.
 """
 
