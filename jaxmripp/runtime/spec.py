@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
+from jaxmripp.spec.feeding import UNCAPPED
 from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import features
 from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
@@ -27,7 +28,7 @@ class GPSpec:
     noise: float
     catchup_rounds: int
     eval_grid: int
-    peer_rounds: int = 255  # exported before the cap existed: uncapped (N <= 256)
+    peer_rounds: int = UNCAPPED  # as exports from before the cap read
 
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}

@@ -44,6 +44,9 @@ This module imports nothing but the standard library.
 
 COMM_VALUE = 1.0  # target of every peer pose in the communication GP
 OWN_PER_ROUND = 1  # own history entries fed per round (one pose is reached per round)
+# gp.peer_rounds that never caps: teams have at most 256 robots (robots.count), so at most
+# 255 peers. The default, and what a policy exported before the cap existed reads as.
+UNCAPPED = 255
 
 
 def peer_rounds(team_size: int, cap: int, catchup_rounds: int) -> int:
