@@ -51,6 +51,8 @@ LOGIT_CLIP = 10.0
 # The pointer query starts at 0.01 x the default (LeCun) weight scale, so the initial
 # policy is near uniform over feasible candidates (the usual PPO last-layer choice).
 POINTER_INIT_SCALE = 0.01
+# The learned weight of the VIEW PRIOR (policy.view_prior > 0), a top-level parameter.
+VIEW_PRIOR_PARAM = "view_prior"
 
 
 def masked_logits(logits: jax.Array, mask: jax.Array) -> jax.Array:
@@ -201,7 +203,7 @@ class ActorCritic(nn.Module):
         pointer_keys = nn.Dense(width, name="pointer_key")(encoded)  # (L, W)
         logits = LOGIT_CLIP * jnp.tanh(pointer_keys @ pointer_query / math.sqrt(width))
         if prior is not None:
-            weight = self.param("view_prior", nn.initializers.constant(cfg.view_prior), ())
+            weight = self.param(VIEW_PRIOR_PARAM, nn.initializers.constant(cfg.view_prior), ())
             logits = logits + weight * prior
         logits = masked_logits(logits, mask)
 

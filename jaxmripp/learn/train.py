@@ -31,7 +31,7 @@ from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.config import Config
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
-from jaxmripp.learn.policy import initial_memory
+from jaxmripp.learn.policy import VIEW_PRIOR_PARAM, initial_memory
 from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
 
 
@@ -93,8 +93,11 @@ class Trainer:
 
     def init_from(self, params, source: str | Path) -> TrainState:
         """`init` with the network parameters `params` (of `train.init_from` = `source`)
-        and an optimiser state made for them; raises ConfigError if their shapes differ."""
+        and an optimiser state made for them; raises ConfigError if their shapes differ.
+        A source without the view prior's weight (trained with `policy.view_prior` = 0)
+        starts this config's prior at its configured weight."""
         fresh = self.init()
+        params = _with_prior_weight(params, fresh.params)
         want = jax.tree.map(lambda x: tuple(x.shape), fresh.params)
         got = jax.tree.map(lambda x: tuple(x.shape), params)
         if jax.tree.structure(want) != jax.tree.structure(got) or want != got:
@@ -104,6 +107,14 @@ class Trainer:
                 "the same policy width, heads, layers, ff_mult and critic")
         params = jax.tree.map(lambda x, like: jnp.asarray(x, like.dtype), params, fresh.params)
         return fresh.replace(params=params, opt_state=self.optimizer.init(params))
+
+
+def _with_prior_weight(params, fresh):
+    """`params` with fresh's view-prior weight added where fresh has one and it lacks it."""
+    inner, fresh_inner = params["params"], fresh["params"]
+    if VIEW_PRIOR_PARAM in fresh_inner and VIEW_PRIOR_PARAM not in inner:
+        return {"params": {**inner, VIEW_PRIOR_PARAM: fresh_inner[VIEW_PRIOR_PARAM]}}
+    return params
 
 
 def _first_difference(want, got) -> str:
