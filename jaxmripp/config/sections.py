@@ -194,7 +194,8 @@ class TrainConfig:
     blocks: int = 0
     # Start from these parameters instead of random ones (a fresh optimiser, update 0): a
     # training run's folder (its last checkpoint) or an export (policy.npz), e.g. to
-    # continue a policy trained with fewer robots. "" = random initialisation.
+    # continue a policy trained with fewer robots; one trained without the view prior
+    # gets it at weight policy.view_prior. "" = random initialisation.
     init_from: str = ""
     # Chunk i trains at radio range radio_ranges[i % len] (empty: radio.range throughout),
     # so that one policy meets the short ranges the evaluation tests as well as the long.
