@@ -11,8 +11,8 @@ envs x N agent-steps. Figures (JSON lines):
 
 With --eval, the largest team then plays the cell the paper lost (16x world, N = 64,
 rho = 0.12, per-robot budget 10 / 3) on W held-out random-layout worlds: the policy with
-single-hop exchange and with relay at rho, and the policy, coordinated and nbv_team with
-global communication (rho = inf: everyone hears everyone every step). Figures:
+single-hop exchange and with relay at rho, and the policy, coordinated, nbv and nbv_team
+with global communication (rho = inf: everyone hears everyone every step). Figures:
 
     scale.pct.<planner>.<single_hop|relay|global>   mean % of windows found (95% CI)
     scale.relay_vs_best_global_<R>x   relay over the best planner with global
@@ -21,7 +21,7 @@ global communication (rho = inf: everyone hears everyone every step). Figures:
 
 With --grid (instead of the timing), the paper's scalability grid: every world size of
 --world-sizes (3x / 8x / 16x: G = 75 / 100 / 125, with the paper's rho = 0.2 / 0.15 /
-0.12) x every team size of --grid-teams, the same five planner-exchange pairs as --eval
+0.12) x every team size of --grid-teams, the same planner-exchange pairs as --eval
 (--range-planners adds planners with single hop and relay beside the policy), W worlds per
 cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std, 95%
 half-width) and, with --figure, % found against N per world size with std bands. Every
@@ -36,7 +36,7 @@ Usage (from the repository root):
         [--eval --worlds W --policy pretrained/default] [--set key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
-        [--global-planners policy,coordinated,nbv_team] [--range-planners policy,nbv_team]
+        [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
     python benchmarks/scale.py --collected grid.jsonl [--figure docs/scale_grid.png]
 """
 
@@ -149,7 +149,7 @@ def main(argv=None) -> int:
 
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
 EXCHANGES = ("global", "single_hop", "relay")
-PLANNERS = ("policy", "coordinated", "nbv_team")
+PLANNERS = ("policy", "coordinated", "nbv", "nbv_team")
 RANGE_PLANNERS = ("policy",)  # those evaluated at the short range unless --range-planners
 # (planner, exchange) pairs in the tables' order: by planner, then by how far news travels
 PAIRS = tuple((planner, exchange) for planner in PLANNERS
@@ -160,7 +160,7 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
                     worlds: int, overrides: list[str], exchanges=EXCHANGES,
                     global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> dict:
     """The `range_planners` (the policy) with single-hop exchange and with relay at
-    radio_range, and the `global_planners` (policy, coordinated and nbv_team) with global
+    radio_range, and the `global_planners` (policy, coordinated, nbv and nbv_team) with global
     communication, for the `exchanges` named, on the same held-out worlds for every team
     size -> {(planner, exchange, n): % found per world}."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)

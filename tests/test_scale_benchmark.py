@@ -71,4 +71,4 @@ def test_a_planner_outside_the_allowed_is_an_error():
                            "--range-planners", "policy,oracle"],
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
-    assert "--range-planners ['oracle']: allowed policy, coordinated, nbv_team" in done.stderr
+    assert "--range-planners ['oracle']: allowed policy, coordinated, nbv, nbv_team" in done.stderr
