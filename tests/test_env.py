@@ -23,7 +23,7 @@ import pytest
 
 from jaxmripp.evaluation import baselines
 from jaxmripp import config
-from jaxmripp.sim import episode, feeding, flight, geometry, gp, sensing
+from jaxmripp.sim import episode, feeding, flight, geometry, gp, maps, sensing
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim import env as envmod
 from jaxmripp.sim.params import DynamicParams, EnvParams, StaticRadio
@@ -310,6 +310,26 @@ def test_no_robot_ever_ends_inside_a_building(episodes):
     # Flights go through known-free space only (jaxmripp.spec.flight): no robot ever
     # entered a building, and none was cut short.
     assert r.obstacle_collisions.sum() == 0 and r.blocked.sum() == 0
+
+
+def test_every_robot_starts_mapped_free_with_somewhere_to_fly():
+    """Take-off pads on voxel boundaries: pads 0.225 apart at G = 40 put the fourth one at
+    x = 3 * 0.225, whose float32 value scaled to voxels lies just below 27 (the voxel the
+    traversal and the runtime give it is 26) while 0.225 * (3 * 40) rounds to 27. The
+    take-off scan must map the voxel the robot is in, or no flight out of it is known
+    free and the robot never moves."""
+    cfg = config.load(REPO / "configs/smoke.yaml", [
+        "world.size=40", "robots.count=10", "robots.pad_spacing=0.225",
+        "robots.budget=[30.0, 30.0]"])
+    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
+    obs, state = jit(lambda key: envmod.reset(key, params, dyn))(jax.random.PRNGKey(0))
+    position = np.asarray(state.position)
+    own = np.floor(position * np.float32(params.size)).astype(np.int32)  # the runtime's rule
+    assert own[3, 0] == 26
+    robot_maps = np.asarray(maps.robot_maps(state.team_map, params.n_robots))
+    codes = robot_maps[np.arange(params.n_robots), own[:, 0], own[:, 1], own[:, 2]]
+    np.testing.assert_array_equal(codes, geometry.FREE)
+    assert np.asarray(obs.mask).any(axis=-1).all()
 
 
 def test_discovered_count_is_monotone_and_bounded(episodes, rollout):

@@ -19,7 +19,11 @@ from jaxmripp.spec.grid import (FREE, HEADING_ANGLES, HEADING_VECTORS, N_HEADING
 
 def voxel_of(position: jnp.ndarray, size: int) -> jnp.ndarray:
     """(..., 3) positions -> (..., 3) int32 voxel indices, clipped into the grid."""
-    return jnp.clip(jnp.floor(position * size), 0, size - 1).astype(jnp.int32)
+    # The position rounded on its own: XLA:CPU would otherwise fold the scaling into the
+    # arithmetic that made it (a take-off pad's start + spacing * i), and a pad on a voxel
+    # boundary would land in the voxel beside the one the traversal (and the runtime) use.
+    scaled = vectors.rounded(vectors.rounded(position, jnp) * size, jnp)
+    return jnp.clip(jnp.floor(scaled), 0, size - 1).astype(jnp.int32)
 
 
 def linear_index(voxel: jnp.ndarray, size: int) -> jnp.ndarray:
@@ -70,11 +74,13 @@ def traverse(start: jnp.ndarray, end: jnp.ndarray, size: int, max_length: float,
     g = jnp.float32(size)
     # Per-axis scalars throughout: XLA:CPU does not vectorise reductions over a trailing
     # axis of 3.
-    # Positions scaled to voxels and rounded on their own: XLA:CPU would otherwise fuse
-    # the product into the subtraction after it (one rounding instead of two) and visit
+    # Positions rounded on their own, then scaled to voxels and rounded again: XLA:CPU
+    # would otherwise fold the scaling into the arithmetic that made a position, or fuse
+    # the product into the subtraction after it (one rounding instead of two), and visit
     # other voxels than the spec (and the runtime) at exact ties.
-    s = [vectors.rounded(start[k].astype(jnp.float32) * g, jnp) for k in range(3)]
-    e = [vectors.rounded(end[k].astype(jnp.float32) * g, jnp) for k in range(3)]
+    start, end = (vectors.rounded(v.astype(jnp.float32), jnp) for v in (start, end))
+    s = [vectors.rounded(start[k] * g, jnp) for k in range(3)]
+    e = [vectors.rounded(end[k] * g, jnp) for k in range(3)]
     d = [e[k] - s[k] for k in range(3)]
     step = [jnp.sign(d[k]).astype(jnp.int32) for k in range(3)]
     safe_d = [jnp.where(d[k] == 0, 1.0, d[k]) for k in range(3)]
