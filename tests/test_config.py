@@ -57,6 +57,16 @@ def test_infinite_radio_range_round_trips():
     assert cfgmod.from_dict(yaml.safe_load(cfgmod.to_yaml(cfg))) == cfg
 
 
+def test_exponents_without_a_dot_are_numbers():
+    """YAML 1.1 reads 5e-5 as a string; a number setting takes it as the number."""
+    cfg = cfgmod.load(None, ["ppo.learning_rate=5e-5", "gp.noise=1E-3"])
+    assert cfg.ppo.learning_rate == 5e-5 and cfg.gp.noise == 1e-3
+    with pytest.raises(ConfigError, match="ppo.learning_rate: got 'fast'; allowed: a number"):
+        cfgmod.load(None, ["ppo.learning_rate=fast"])
+    with pytest.raises(ConfigError, match="allowed: a number"):
+        cfgmod.load(None, ["ppo.learning_rate=nan"])
+
+
 def test_overrides_apply_on_top_of_a_preset():
     cfg = cfgmod.load("configs/default.yaml", ["world.size=64", "robots.count=4"])
     assert cfg.world.size == 64 and cfg.robots.count == 4

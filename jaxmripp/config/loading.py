@@ -46,6 +46,12 @@ def _coerce_number(key: str, value: Any, annotation) -> int | float:
         return value
     if isinstance(value, str) and value.strip().lower() in ("inf", ".inf", "infinity"):
         return math.inf
+    if isinstance(value, str):
+        # YAML 1.1 reads exponents without a dot (5e-5) as strings.
+        try:
+            value = float(value)
+        except ValueError:
+            pass
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise ConfigError(f"{key}: got {value!r}; allowed: a number")
     if math.isnan(value):
