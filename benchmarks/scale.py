@@ -19,6 +19,9 @@ with global communication (rho = inf: everyone hears everyone every step). Figur
                                       communication (R: world volume over G = 50's)
     scale.relay_vs_best_global_p      Welch p of that comparison
 
+and, with --figure, % found against the fraction of the team budget spent, per planner
+and exchange (mean and std band over the worlds).
+
 With --grid (instead of the timing), the paper's scalability grid: every world size of
 --world-sizes (3x / 8x / 16x: G = 75 / 100 / 125, with the paper's rho = 0.2 / 0.15 /
 0.12) x every team size of --grid-teams, the same planner-exchange pairs as --eval
@@ -33,7 +36,7 @@ over the best planner with global communication, with their Welch p) and draws -
 
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
-        [--eval --worlds W --policy pretrained/default] [--set key=value ...]
+        [--eval --worlds W --policy pretrained/default [--figure FILE]] [--set key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
         [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
@@ -73,7 +76,8 @@ def main(argv=None) -> int:
     parser.add_argument("--grid", action="store_true", help="the scalability grid only")
     parser.add_argument("--world-sizes", default="75,100,125")
     parser.add_argument("--grid-teams", default="16,32,48,64")
-    parser.add_argument("--figure", type=Path, default=None, help="--grid: the plot")
+    parser.add_argument("--figure", type=Path, default=None,
+                        help="--grid: %% found against N; --eval: against the budget spent")
     parser.add_argument("--exchanges", default=",".join(EXCHANGES),
                         help="--grid: the exchanges to evaluate (a cell's pairs split over runs)")
     parser.add_argument("--global-planners", default=",".join(PLANNERS),
@@ -143,7 +147,8 @@ def main(argv=None) -> int:
     # ru_maxrss is in kilobytes on Linux
     emit("scale.peak_rss_mb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "MB")
     if args.eval:
-        evaluate_cell(args.policy, last, args.size, args.radio_range, args.worlds, args.set)
+        evaluate_cell(args.policy, last, args.size, args.radio_range, args.worlds, args.set,
+                      args.figure)
     return 0
 
 
@@ -162,7 +167,7 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
     """The `range_planners` (the policy) with single-hop exchange and with relay at
     radio_range, and the `global_planners` (policy, coordinated, nbv and nbv_team) with global
     communication, for the `exchanges` named, on the same held-out worlds for every team
-    size -> {(planner, exchange, n): % found per world}."""
+    size -> {(planner, exchange, n): its `cells.ShapeRun`}."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
@@ -186,15 +191,16 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
         result = sweep.run_sweep(cfg, policies, time_planning=False, keep_pictures=False,
                                  log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:
-            found[run.planner, exchange, run.shape.n_robots] = run.discovered
+            found[run.planner, exchange, run.shape.n_robots] = run
     return found
 
 
 def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: int,
-                  overrides: list[str]) -> None:
-    from jaxmripp.evaluation import stats  # noqa: PLC0415
+                  overrides: list[str], figure: Path | None = None) -> None:
+    from jaxmripp.evaluation import plots, stats  # noqa: PLC0415
 
-    found = sweep_exchanges(policy, [n], size, radio_range, worlds, overrides)
+    runs = sweep_exchanges(policy, [n], size, radio_range, worlds, overrides)
+    found = {key: run.discovered for key, run in runs.items()}
     for (planner, exchange, _), discovered in found.items():
         mean, std, half = stats.mean_ci(discovered)
         emit(f"scale.pct.{planner}.{exchange}", mean, "%", std=round(std, 2),
@@ -205,6 +211,13 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
     emit(f"scale.relay_vs_best_global_{ratio}x",
          relay.mean() / max(found[best].mean(), 1e-9), "ratio", best_global=best[0])
     emit_p("scale.relay_vs_best_global_p", stats.welch_ttest(relay, found[best])[2])
+    if figure is not None:
+        order = {pair: i for i, pair in enumerate(PAIRS)}
+        plots.discovery_vs_budget(figure, {
+            f"{planner}, {exchange.replace('_', ' ')}": runs[planner, exchange, n]
+            for planner, exchange, _ in sorted(runs, key=lambda k: order[k[:2]])},
+            title=f"{ratio}x world (G = {size}), N = {n}, rho = {radio_range:g}, "
+                  f"{worlds} worlds")
 
 
 def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
@@ -214,10 +227,10 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
 
     grid = {}
     for size in sizes:
-        found = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides,
-                                exchanges, global_planners, range_planners)
-        for (planner, exchange, n), discovered in sorted(found.items()):
-            mean, std, half = stats.mean_ci(discovered)
+        runs = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides,
+                               exchanges, global_planners, range_planners)
+        for (planner, exchange, n), run in sorted(runs.items()):
+            mean, std, half = stats.mean_ci(run.discovered)
             grid[planner, exchange, size, n] = (mean, std, worlds)
             emit(f"scale.grid.{planner}.{exchange}.g{size}.n{n}", mean, "%",
                  std=round(std, 2), ci95_half=round(half, 2) if worlds > 1 else None,

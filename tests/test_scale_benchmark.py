@@ -1,4 +1,5 @@
-"""benchmarks/scale.py --collected: the grid's tables from JSON lines collected over runs."""
+"""benchmarks/scale.py: the grid's tables from JSON lines collected over runs (--collected)
+and, slow, the --eval cell's figures and curves."""
 
 import json
 import math
@@ -6,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from scipy import stats
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
@@ -72,3 +74,25 @@ def test_a_planner_outside_the_allowed_is_an_error():
                           capture_output=True, text=True, timeout=120)
     assert done.returncode == 2
     assert "--range-planners ['oracle']: allowed policy, coordinated, nbv, nbv_team" in done.stderr
+
+
+@pytest.mark.slow  # six evaluations, each compiled on its own: about 2 minutes
+def test_eval_cell_prints_the_ratio_of_its_own_figures_and_draws_the_curves(tmp_path):
+    figure = tmp_path / "cell.png"
+    done = subprocess.run([sys.executable, str(SCRIPT), "--teams", "2,3", "--size", "30",
+                           "--radio-range", "0.3", "--envs", "1", "--repeats", "1", "--eval",
+                           "--worlds", "2", "--policy", str(SCRIPT.parents[1] / "pretrained" /
+                                                            "default"),
+                           "--figure", str(figure)],
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    lines = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}
+    pct = {name.split(".", 2)[2]: r["value"] for name, r in lines.items()
+           if name.startswith("scale.pct.")}
+    assert set(pct) == {"policy.single_hop", "policy.relay", "policy.global",
+                        "coordinated.global", "nbv.global", "nbv_team.global"}
+    best = max((v, k.split(".")[0]) for k, v in pct.items() if k.endswith(".global"))
+    ratio = lines["scale.relay_vs_best_global_0x"]
+    assert math.isclose(ratio["value"], pct["policy.relay"] / best[0], rel_tol=1e-3)
+    assert ratio["best_global"] == best[1]
+    assert figure.stat().st_size > 0
