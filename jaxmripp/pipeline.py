@@ -68,12 +68,13 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
                     sweep: Config | None = None):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
     export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config,
-    deployed as the `sweep` config says (default `cfg`): a policy deciding in turn
-    (`policy.claims`) hears claims as its radio.relay says."""
+    deployed as the `sweep` config says (default `cfg`): a policy decides in turn where it
+    was trained so or the sweep sets `policy.claims` (the same network, choosing on view
+    gains without its peers' claims), and hears claims as the sweep's radio.relay says."""
     sweep = cfg if sweep is None else sweep
     trainer = trainmod.Trainer.build(cfg)
-    in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay) if cfg.policy.claims
-               else None)
+    in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay)
+               if cfg.policy.claims or sweep.policy.claims else None)
     return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
                           cfg.policy.width, in_turn=in_turn)
 
