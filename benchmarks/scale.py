@@ -212,10 +212,9 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
          relay.mean() / max(found[best].mean(), 1e-9), "ratio", best_global=best[0])
     emit_p("scale.relay_vs_best_global_p", stats.welch_ttest(relay, found[best])[2])
     if figure is not None:
-        order = {pair: i for i, pair in enumerate(PAIRS)}
         plots.discovery_vs_budget(figure, {
             f"{planner}, {exchange.replace('_', ' ')}": runs[planner, exchange, n]
-            for planner, exchange, _ in sorted(runs, key=lambda k: order[k[:2]])},
+            for planner, exchange, _ in sorted(runs, key=lambda k: PAIRS.index(k[:2]))},
             title=f"{ratio}x world (G = {size}), N = {n}, rho = {radio_range:g}, "
                   f"{worlds} worlds")
 

@@ -22,7 +22,7 @@ def voxel_of(position: jnp.ndarray, size: int) -> jnp.ndarray:
     # The position rounded on its own: XLA:CPU would otherwise fold the scaling into the
     # arithmetic that made it (a take-off pad's start + spacing * i), and a pad on a voxel
     # boundary would land in the voxel beside the one the traversal (and the runtime) use.
-    scaled = vectors.rounded(vectors.rounded(position, jnp) * size, jnp)
+    scaled = vectors.rounded(position, jnp) * size
     return jnp.clip(jnp.floor(scaled), 0, size - 1).astype(jnp.int32)
 
 
