@@ -17,6 +17,7 @@ from typing import Any, Callable
 import jax
 
 from jaxmripp import allocator
+from jaxmripp.sim import xla_options
 
 allocator.keep_freed_memory()
 
@@ -57,6 +58,11 @@ def median_cpu_seconds(fn: Callable[[], Any], repeats: int = 5) -> float:
     return statistics.median(times)
 
 
+def simulation_jit(fn: Callable, **kwargs) -> Callable:
+    """`jax.jit` with the compiler options evaluation sweeps compile simulation with."""
+    return jax.jit(fn, compiler_options=xla_options.simulation(), **kwargs)
+
+
 def batch_arguments(description: str) -> argparse.ArgumentParser:
     """The batch-shape options shared by the environment-side benchmarks."""
     parser = argparse.ArgumentParser(description=description)
@@ -69,7 +75,8 @@ def batch_arguments(description: str) -> argparse.ArgumentParser:
 
 class RandomTeamStepper:
     """A batch of environments stepped by the random planner: `reset()` then `step()`,
-    one jitted, vmapped team step with the state donated (what env.py and scale.py time).
+    one jitted, vmapped team step with the state donated (what env.py and scale.py time),
+    compiled with the simulation options that evaluation sweeps use (`xla_options`).
     `package` names the simulator package (env_ab.py steps another commit's copy)."""
 
     def __init__(self, params, dyn, envs: int, seed: int = 0, package: str = "jaxmripp"):
@@ -89,8 +96,8 @@ class RandomTeamStepper:
             obs, state, reward, _, _ = envmod.step(key_step, state, actions, params, dyn)
             return obs, state, reward
 
-        self._step = jax.jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)),
-                             donate_argnums=(1, 2))
+        self._step = simulation_jit(jax.vmap(team_step, in_axes=(0, 0, 0, None)),
+                                    donate_argnums=(1, 2))
         self.obs = self.state = None
 
     def reset(self):

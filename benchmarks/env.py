@@ -5,7 +5,9 @@ everything on (ray-cast sensing with occlusion, per-robot utility and communicat
 radio exchange at rho = 0.3, rewards). The step (random action choice + `env.step`) is
 jitted over the vmapped batch with the state donated; `env.agent_steps_per_s` is
 envs x robots / the median step time (wall clock; on a shared machine it moves with the
-load, so the CPU time per step and `env.agent_steps_per_cpu_s` are printed too).
+load, so the CPU time per step and `env.agent_steps_per_cpu_s` are printed too). It is
+compiled as evaluation sweeps compile simulation, with the host's `jaxmripp.sim.xla_options`
+(printed with every figure as `xla_options`).
 
 The same run times the step's parts separately on the same batch, each jitted and
 vmapped alone (they are not donated, so each also pays for copying its outputs):
@@ -32,9 +34,11 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
+from common import (RandomTeamStepper, batch_arguments, emit, median_seconds,  # noqa: E402
+                    simulation_jit)
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, maps, sensing, view  # noqa: E402
+from jaxmripp.sim import xla_options  # noqa: E402
 from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
@@ -54,7 +58,8 @@ def main() -> None:
     params, dyn = build(args)
     envs, n = args.envs, params.n_robots
     common = dict(envs=envs, robots=n, size=params.size, candidates=params.n_candidates,
-                  gp_capacity=params.gp.capacity, backend=jax.default_backend())
+                  gp_capacity=params.gp.capacity, backend=jax.default_backend(),
+                  xla_options=xla_options.simulation())
 
     stepper = RandomTeamStepper(params, dyn, envs)
     start = time.perf_counter()
@@ -123,13 +128,14 @@ def main() -> None:
         return comms.share_maps(s.team_map, s.building_top, contact, p.radio.relay)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
-        "sensing": (jax.jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),
-        "gp_update": (jax.jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
-        "gp_predict": (jax.jit(jax.vmap(gp_predict_part)), False, ()),
-        "candidates": (jax.jit(jax.vmap(candidates_part, in_axes=(0, 0, None))), False,
+        "sensing": (simulation_jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),
+        "gp_update": (simulation_jit(jax.vmap(gp_update_part), donate_argnums=0), True, ()),
+        "gp_predict": (simulation_jit(jax.vmap(gp_predict_part)), False, ()),
+        "candidates": (simulation_jit(jax.vmap(candidates_part, in_axes=(0, 0, None))), False,
                        (jax.random.split(jax.random.PRNGKey(0), envs), dyn)),
-        "view_gain": (jax.jit(jax.vmap(view_gain_part)), False, ()),
-        "share_maps": (jax.jit(jax.vmap(share_maps_part, in_axes=(0, None))), False, (dyn,)),
+        "view_gain": (simulation_jit(jax.vmap(view_gain_part)), False, ()),
+        "share_maps": (simulation_jit(jax.vmap(share_maps_part, in_axes=(0, None))), False,
+                       (dyn,)),
     }
     part_seconds = {}
     for name, (fn, donated, extra) in parts.items():

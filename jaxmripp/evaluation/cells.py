@@ -29,7 +29,7 @@ from flax import struct
 
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import env as envmod
-from jaxmripp.sim import episode
+from jaxmripp.sim import episode, xla_options
 from jaxmripp.parallel.mesh import data_parallel
 from jaxmripp.sim.params import DynamicParams, EnvParams, stack
 
@@ -174,8 +174,8 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
     Episodes are ordered cell-major, then world-major (episode w * trials + t). The last
     chunk is padded with repeats of the last episode so every chunk has the compiled
     shape; a chunk is split over every device (`parallel.mesh`). `compiler_options` go
-    to XLA (tests pass {"xla_backend_optimization_level": 0} to compile faster at the cost
-    of slower code).
+    to XLA on top of the host's simulation options (`xla_options`; tests pass
+    {"xla_backend_optimization_level": 0} to compile faster at the cost of slower code).
     """
     per_cell, total = worlds * trials, len(shapes) * worlds * trials
     inputs = _episode_inputs(shapes, dynamics, seed, worlds, trials)
@@ -195,7 +195,8 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
         return data.put_split(jax.tree.map(lambda x: x[c * batch:(c + 1) * batch], inputs))
 
     start = time.perf_counter()
-    compiled = jax.jit(batched).lower(*part(0)).compile(compiler_options)
+    compiled = jax.jit(batched).lower(*part(0)).compile(
+        xla_options.simulation(compiler_options))
     compile_s = time.perf_counter() - start
     outputs = []
     start = time.perf_counter()
@@ -256,7 +257,7 @@ def time_planning(planner: Planner, params: EnvParams, dynamics: list[DynamicPar
         if compiled is None:
             start = time.perf_counter()
             compiled = jax.jit(act).lower(keys, memory, obs, state, dyn).compile(
-                compiler_options)
+                xla_options.simulation(compiler_options))
             compile_s = time.perf_counter() - start
         best = math.inf
         for _ in range(repeats):

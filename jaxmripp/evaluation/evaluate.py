@@ -32,7 +32,7 @@ from jaxmripp.evaluation.cells import SAFETY_COUNTS, safety_columns, safety_coun
 from jaxmripp.evaluation.planners import eval_setting
 from jaxmripp.parallel.mesh import data_parallel
 from jaxmripp.sim.episode import Planner
-from jaxmripp.sim import episode
+from jaxmripp.sim import episode, xla_options
 from jaxmripp.sim.params import DynamicParams, EnvParams
 
 
@@ -96,7 +96,8 @@ def compare(planners: list[Planner], params: EnvParams, dyn: DynamicParams,
     out = {}
     for planner in planners:
         start = time.perf_counter()
-        compiled = run_episodes.lower(keys, params, dyn, planner).compile(compiler_options)
+        compiled = run_episodes.lower(keys, params, dyn, planner).compile(
+            xla_options.simulation(compiler_options))
         seconds = time.perf_counter() - start
         start = time.perf_counter()
         result = jax.block_until_ready(compiled(keys, dyn))
