@@ -75,8 +75,8 @@ def batch_arguments(description: str) -> argparse.ArgumentParser:
 
 class RandomTeamStepper:
     """A batch of environments stepped by the random planner: `reset()` then `step()`,
-    one jitted, vmapped team step with the state donated (what env.py and scale.py time),
-    compiled with the simulation options that evaluation sweeps use (`xla_options`).
+    one jitted, vmapped team step with the state donated (what env.py and scale.py time);
+    both compiled with the simulation options that evaluation sweeps use (`xla_options`).
     `package` names the simulator package (env_ab.py steps another commit's copy)."""
 
     def __init__(self, params, dyn, envs: int, seed: int = 0, package: str = "jaxmripp"):
@@ -86,8 +86,8 @@ class RandomTeamStepper:
         self.params, self.dyn, self.envs = params, dyn, envs
         self.key = jax.random.PRNGKey(seed + 1)
         self._keys = jax.random.split(jax.random.PRNGKey(seed), envs)
-        self._reset = jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d),
-                                       in_axes=(0, None)))
+        self._reset = simulation_jit(jax.vmap(lambda k, d: envmod.reset(k, params, d),
+                                              in_axes=(0, None)))
         planner = baselines.random_planner()
 
         def team_step(key, obs, state, dyn):
