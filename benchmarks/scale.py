@@ -34,6 +34,15 @@ in parallel on one GPU too; --collected FILE prints the grid's tables from the l
 collected in FILE (mean % found, std over the worlds, and per cell the policy with relay
 over the best planner with global communication, with their Welch p) and draws --figure.
 
+With --ranges R1,R2,... (instead of the timing), how far the radio must reach: the --eval
+cell (the largest team of --teams in the --size world) with the --range-planners with single
+hop and relay at each radio range listed (one compilation for all of them), and the
+--global-planners with global communication, on W worlds. Figures:
+scale.range.<planner>.<exchange>.r<rho> (mean % found, std, 95% half-width),
+scale.range.relay_vs_best_global.r<rho> (the policy with relay at rho over the best planner
+with global communication, with its Welch p) and, with --figure, % found against the radio
+range with std bands, the global figures as horizontal bands.
+
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
         [--eval --worlds W --policy pretrained/default [--figure FILE]] [--set key=value ...]
@@ -41,6 +50,8 @@ Usage (from the repository root):
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
         [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
     python benchmarks/scale.py --collected grid.jsonl [--figure docs/scale_grid.png]
+    python benchmarks/scale.py --ranges 0.12,0.15,0.18,0.25 [--worlds W] [--policy DIR]
+        [--figure docs/scale_radio_range.png] [--global-planners policy,nbv]
 """
 
 from __future__ import annotations
@@ -74,6 +85,8 @@ def main(argv=None) -> int:
     parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
                         help="trained run or shipped folder for --eval and --grid")
     parser.add_argument("--grid", action="store_true", help="the scalability grid only")
+    parser.add_argument("--ranges", default=None,
+                        help="radio ranges: %% found against the range in the --eval cell only")
     parser.add_argument("--world-sizes", default="75,100,125")
     parser.add_argument("--grid-teams", default="16,32,48,64")
     parser.add_argument("--figure", type=Path, default=None,
@@ -89,7 +102,7 @@ def main(argv=None) -> int:
                         help="print the tables (and draw --figure) from the scale.grid.* "
                              "JSON lines of this file, collected from --grid runs")
     args = parser.parse_args(argv)
-    if (args.eval or args.grid) and not (args.policy / "config.yaml").is_file():
+    if (args.eval or args.grid or args.ranges) and not (args.policy / "config.yaml").is_file():
         print(f"error: --policy {args.policy}: no config.yaml there", file=sys.stderr)
         return 2
     if args.collected is not None:
@@ -103,17 +116,35 @@ def main(argv=None) -> int:
         if args.figure is not None:
             plot_grid(grid, sizes, args.figure)
         return 0
+    exchanges = args.exchanges.split(",")
+    global_planners = args.global_planners.split(",") if "global" in exchanges else []
+    range_planners = args.range_planners.split(",")
+    for flag, given, allowed in (("--exchanges", exchanges, EXCHANGES),
+                                 ("--global-planners", global_planners, PLANNERS),
+                                 ("--range-planners", range_planners, PLANNERS)):
+        if not set(given) <= set(allowed):
+            print(f"error: {flag} {sorted(set(given) - set(allowed))}: allowed "
+                  f"{', '.join(allowed)}", file=sys.stderr)
+            return 2
+    if args.ranges is not None:
+        try:
+            ranges = sorted({float(r) for r in args.ranges.split(",")})
+        except ValueError:
+            ranges = []
+        if not ranges or not all(0 < r < float("inf") for r in ranges):
+            print(f"error: --ranges {args.ranges}: allowed a comma-separated list of finite "
+                  "positive radio ranges (fractions of the world), e.g. 0.12,0.18",
+                  file=sys.stderr)
+            return 2
+        if "policy" not in range_planners:
+            print("error: --range-planners: --ranges compares the policy with relay, so "
+                  "the list must name policy", file=sys.stderr)
+            return 2
+        evaluate_ranges(args.policy, max(int(n) for n in args.teams.split(",")), args.size,
+                        ranges, args.worlds, args.set, args.figure, exchanges,
+                        global_planners, range_planners)
+        return 0
     if args.grid:
-        exchanges = args.exchanges.split(",")
-        global_planners = args.global_planners.split(",") if "global" in exchanges else []
-        range_planners = args.range_planners.split(",")
-        for flag, given, allowed in (("--exchanges", exchanges, EXCHANGES),
-                                     ("--global-planners", global_planners, PLANNERS),
-                                     ("--range-planners", range_planners, PLANNERS)):
-            if not set(given) <= set(allowed):
-                print(f"error: {flag} {sorted(set(given) - set(allowed))}: allowed "
-                      f"{', '.join(allowed)}", file=sys.stderr)
-                return 2
         sizes = [int(g) for g in args.world_sizes.split(",")]
         unknown = sorted(set(sizes) - set(PAPER_RADIO))
         if unknown:
@@ -161,13 +192,13 @@ PAIRS = tuple((planner, exchange) for planner in PLANNERS
               for exchange in ("single_hop", "relay", "global"))
 
 
-def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: float,
+def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_ranges: list[float],
                     worlds: int, overrides: list[str], exchanges=EXCHANGES,
                     global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> dict:
-    """The `range_planners` (the policy) with single-hop exchange and with relay at
-    radio_range, and the `global_planners` (policy, coordinated, nbv and nbv_team) with global
-    communication, for the `exchanges` named, on the same held-out worlds for every team
-    size -> {(planner, exchange, n): its `cells.ShapeRun`}."""
+    """The `range_planners` (the policy) with single-hop exchange and with relay at each
+    of radio_ranges, and the `global_planners` (policy, coordinated, nbv and nbv_team) with
+    global communication, for the `exchanges` named, on the same held-out worlds for every
+    team size -> {(planner, exchange, n, rho): its `cells.ShapeRun`} (rho = inf for global)."""
     from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
 
@@ -176,9 +207,10 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
             "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
             "eval.pairs=[]", "eval.zip_with_size=[]", *overrides]
     # exchange -> (radio range, relay, planners)
+    ranges = ", ".join(map(str, radio_ranges))
     settings_of = {"global": (".inf", "false", global_planners),
-                   "single_hop": (radio_range, "false", range_planners),
-                   "relay": (radio_range, "true", range_planners)}
+                   "single_hop": (ranges, "false", range_planners),
+                   "relay": (ranges, "true", range_planners)}
     found = {}
     for exchange in exchanges:
         rho, relay, planners = settings_of[exchange]
@@ -191,7 +223,7 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_range: floa
         result = sweep.run_sweep(cfg, policies, time_planning=False, keep_pictures=False,
                                  log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:
-            found[run.planner, exchange, run.shape.n_robots] = run
+            found[run.planner, exchange, run.shape.n_robots, run.shape.radio_range] = run
     return found
 
 
@@ -199,7 +231,8 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
                   overrides: list[str], figure: Path | None = None) -> None:
     from jaxmripp.evaluation import plots, stats  # noqa: PLC0415
 
-    runs = sweep_exchanges(policy, [n], size, radio_range, worlds, overrides)
+    runs = {key[:3]: run for key, run in
+            sweep_exchanges(policy, [n], size, [radio_range], worlds, overrides).items()}
     found = {key: run.discovered for key, run in runs.items()}
     for (planner, exchange, _), discovered in found.items():
         mean, std, half = stats.mean_ci(discovered)
@@ -226,9 +259,9 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
 
     grid = {}
     for size in sizes:
-        runs = sweep_exchanges(policy, teams, size, PAPER_RADIO[size], worlds, overrides,
+        runs = sweep_exchanges(policy, teams, size, [PAPER_RADIO[size]], worlds, overrides,
                                exchanges, global_planners, range_planners)
-        for (planner, exchange, n), run in sorted(runs.items()):
+        for (planner, exchange, n, _), run in sorted(runs.items()):
             mean, std, half = stats.mean_ci(run.discovered)
             grid[planner, exchange, size, n] = (mean, std, worlds)
             emit(f"scale.grid.{planner}.{exchange}.g{size}.n{n}", mean, "%",
@@ -236,6 +269,86 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                  worlds=worlds)
     if figure is not None:
         plot_grid(grid, sizes, figure)
+
+
+def evaluate_ranges(policy: Path, n: int, size: int, radio_ranges: list[float], worlds: int,
+                    overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
+                    global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> None:
+    from jaxmripp.evaluation import stats  # noqa: PLC0415
+
+    runs = sweep_exchanges(policy, [n], size, radio_ranges, worlds, overrides, exchanges,
+                           global_planners, range_planners)
+    for (planner, exchange, _, rho), run in sorted(runs.items()):
+        mean, std, half = stats.mean_ci(run.discovered)
+        name = f"scale.range.{planner}.{exchange}" + ("" if exchange == "global" else f".r{rho:g}")
+        emit(name, mean, "%", std=round(std, 2), ci95_half=round(half, 2) if worlds > 1 else None,
+             worlds=worlds, n=n, size=size)
+    best = max((run for key, run in runs.items() if key[1] == "global"),
+               key=lambda run: run.discovered.mean(), default=None)
+    for rho in radio_ranges:
+        relay = runs.get(("policy", "relay", n, rho))
+        if relay is None or best is None:
+            continue
+        emit(f"scale.range.relay_vs_best_global.r{rho:g}",
+             relay.discovered.mean() / max(best.discovered.mean(), 1e-9), "ratio",
+             best_global=best.planner,
+             p=float(f"{stats.welch_ttest(relay.discovered, best.discovered)[2]:.3g}"))
+    if figure is not None:
+        plot_ranges(runs, figure, title=f"{round((size / config.REFERENCE_SIZE) ** 3)}x world "
+                                        f"(G = {size}), N = {n}, {worlds} worlds")
+
+
+def plot_ranges(runs: dict, path: Path, title: str) -> None:
+    """% found against the radio range, std bands, one line per planner and short-range
+    exchange; the global figures as horizontal bands across the plot."""
+    fig, ax = _figure(1, width=5.6)
+    ranges = sorted({key[3] for key in runs if key[1] != "global"})
+    for planner, exchange in PAIRS:
+        found = {key[3]: run.discovered for key, run in runs.items()
+                 if key[:2] == (planner, exchange)}
+        if not found:
+            continue
+        # global: one figure (at rho = inf), drawn across the ranges
+        xs = ranges if exchange == "global" else sorted(found)
+        each = [found[x if exchange != "global" else float("inf")] for x in xs]
+        _band(ax[0], xs, [f.mean() for f in each],
+              [f.std(ddof=1) if len(f) > 1 else 0.0 for f in each], planner, exchange,
+              marker=None if exchange == "global" else "o")
+    ax[0].set(title=title, xlabel="radio range rho (fraction of the world)",
+              ylabel="% windows found")
+    _save(fig, ax, path)
+
+
+def _figure(panels: int, width: float = 4.2):
+    """A row of `panels` axes, `width` inches each."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, axes = plt.subplots(1, panels, figsize=(width * panels, 3.6),
+                             squeeze=False)
+    return fig, axes[0]
+
+
+def _band(ax, xs, mean, std, planner: str, exchange: str, marker="o") -> None:
+    """One planner-exchange line with its mean +- std band: a colour per planner, a line
+    style per exchange."""
+    colour = f"C{PLANNERS.index(planner)}"
+    style = {"single_hop": ":", "relay": "--", "global": "-"}[exchange]
+    ax.plot(xs, mean, marker=marker, color=colour, linestyle=style,
+            label=f"{planner}, {exchange.replace('_', ' ')}")
+    ax.fill_between(xs, [m - s for m, s in zip(mean, std)], [m + s for m, s in zip(mean, std)],
+                    color=colour, alpha=0.12)
+
+
+def _save(fig, axes, path: Path) -> None:
+    from jaxmripp.evaluation import viz  # noqa: PLC0415
+
+    for ax in axes:
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=7, loc="lower right", handlelength=3.5)
+    viz.save_figure(fig, path)
 
 
 def read_grid(path: Path) -> dict:
@@ -295,32 +408,16 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
 def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
     """% found against team size, one panel per world size, std bands; a colour per
     planner, a line style per exchange."""
-    import matplotlib  # noqa: PLC0415
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt  # noqa: PLC0415
-
-    fig, axes = plt.subplots(1, len(sizes), figsize=(4.2 * len(sizes), 3.6), squeeze=False)
-    colour = {planner: f"C{i}" for i, planner in enumerate(PLANNERS)}
-    style = {"single_hop": ":", "relay": "--", "global": "-"}
-    for ax, size in zip(axes[0], sizes):
+    fig, axes = _figure(len(sizes))
+    for ax, size in zip(axes, sizes):
         for planner, exchange in pairs_in(grid):
             ns = sorted(n for p, e, g, n in grid if (p, e, g) == (planner, exchange, size))
-            mean = [grid[planner, exchange, size, n][0] for n in ns]
-            std = [grid[planner, exchange, size, n][1] for n in ns]
-            ax.plot(ns, mean, marker="o", color=colour[planner], linestyle=style[exchange],
-                    label=f"{planner}, {exchange.replace('_', ' ')}")
-            ax.fill_between(ns, [m - s for m, s in zip(mean, std)],
-                            [m + s for m, s in zip(mean, std)], color=colour[planner],
-                            alpha=0.12)
+            _band(ax, ns, [grid[planner, exchange, size, n][0] for n in ns],
+                  [grid[planner, exchange, size, n][1] for n in ns], planner, exchange)
         ratio = round((size / config.REFERENCE_SIZE) ** 3)
         ax.set(title=f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})",
                xlabel="robots N", ylabel="% windows found", ylim=(0, 100))
-        ax.grid(alpha=0.3)
-    axes[0][0].legend(fontsize=7, loc="lower right", handlelength=3.5)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    _save(fig, axes, path)
 
 
 if __name__ == "__main__":

@@ -96,3 +96,43 @@ def test_eval_cell_prints_the_ratio_of_its_own_figures_and_draws_the_curves(tmp_
     assert math.isclose(ratio["value"], pct["policy.relay"] / best[0], rel_tol=1e-3)
     assert ratio["best_global"] == best[1]
     assert figure.stat().st_size > 0
+
+
+@pytest.mark.parametrize("ranges", ["0.12,x", "0.12,inf", "0,0.2", ""])
+def test_radio_ranges_that_are_not_finite_positive_numbers_are_an_error(ranges):
+    done = subprocess.run([sys.executable, str(SCRIPT), "--ranges", ranges, "--policy",
+                           str(SCRIPT.parents[1] / "pretrained" / "scale")],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert f"--ranges {ranges}: allowed a comma-separated list of finite positive" in done.stderr
+
+
+def test_ranges_need_the_policy_among_the_range_planners():
+    done = subprocess.run([sys.executable, str(SCRIPT), "--ranges", "0.12", "--policy",
+                           str(SCRIPT.parents[1] / "pretrained" / "scale"),
+                           "--range-planners", "nbv"],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2
+    assert "--ranges compares the policy with relay" in done.stderr
+
+
+@pytest.mark.slow  # two evaluations: about a minute
+def test_ranges_print_each_range_and_the_ratio_of_their_own_figures(tmp_path):
+    figure = tmp_path / "ranges.png"
+    done = subprocess.run([sys.executable, str(SCRIPT), "--teams", "3", "--size", "30",
+                           "--ranges", "0.3,0.15", "--worlds", "2", "--policy",
+                           str(SCRIPT.parents[1] / "pretrained" / "default"),
+                           "--global-planners", "nbv", "--figure", str(figure)],
+                          capture_output=True, text=True, timeout=900)
+    assert done.returncode == 0, done.stderr
+    lines = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}
+    assert set(lines) == {"scale.range.policy.single_hop.r0.15", "scale.range.policy.relay.r0.15",
+                          "scale.range.policy.single_hop.r0.3", "scale.range.policy.relay.r0.3",
+                          "scale.range.nbv.global", "scale.range.relay_vs_best_global.r0.15",
+                          "scale.range.relay_vs_best_global.r0.3"}
+    for rho in ("0.15", "0.3"):
+        ratio = lines[f"scale.range.relay_vs_best_global.r{rho}"]
+        assert math.isclose(ratio["value"], lines[f"scale.range.policy.relay.r{rho}"]["value"]
+                            / lines["scale.range.nbv.global"]["value"], rel_tol=1e-3)
+        assert ratio["best_global"] == "nbv" and 0 <= ratio["p"] <= 1
+    assert figure.stat().st_size > 0
