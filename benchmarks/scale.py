@@ -71,7 +71,21 @@ from jaxmripp import config  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
+class UsageError(ValueError):
+    """Arguments the script cannot run with: main prints the message and exits with 2."""
+
+
 def main(argv=None) -> int:
+    args = _parser().parse_args(argv)
+    try:
+        _run(args)
+    except (UsageError, config.ConfigError) as err:
+        print(f"error: {err}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--teams", default="3,16,32,64")
@@ -83,14 +97,15 @@ def main(argv=None) -> int:
     parser.add_argument("--eval", action="store_true", help="also evaluate the largest team")
     parser.add_argument("--worlds", type=int, default=4, help="worlds of the --eval cell")
     parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
-                        help="trained run or shipped folder for --eval and --grid")
+                        help="trained run or shipped folder for --eval, --grid and --ranges")
     parser.add_argument("--grid", action="store_true", help="the scalability grid only")
     parser.add_argument("--ranges", default=None,
                         help="radio ranges: %% found against the range in the --eval cell only")
     parser.add_argument("--world-sizes", default="75,100,125")
     parser.add_argument("--grid-teams", default="16,32,48,64")
     parser.add_argument("--figure", type=Path, default=None,
-                        help="--grid: %% found against N; --eval: against the budget spent")
+                        help="--grid: %% found against N; --eval: against the budget spent; "
+                             "--ranges: against the radio range")
     parser.add_argument("--exchanges", default=",".join(EXCHANGES),
                         help="--grid: the exchanges to evaluate (a cell's pairs split over runs)")
     parser.add_argument("--global-planners", default=",".join(PLANNERS),
@@ -101,21 +116,46 @@ def main(argv=None) -> int:
     parser.add_argument("--collected", type=Path, default=None,
                         help="print the tables (and draw --figure) from the scale.grid.* "
                              "JSON lines of this file, collected from --grid runs")
-    args = parser.parse_args(argv)
-    if (args.eval or args.grid or args.ranges) and not (args.policy / "config.yaml").is_file():
-        print(f"error: --policy {args.policy}: no config.yaml there", file=sys.stderr)
-        return 2
+    return parser
+
+
+def _run(args) -> None:
     if args.collected is not None:
         grid = read_grid(args.collected) if args.collected.is_file() else {}
         if not grid:
-            print(f"error: --collected {args.collected}: no file with "
-                  "scale.grid.<planner>.<exchange>.g<G>.n<N> lines", file=sys.stderr)
-            return 2
+            raise UsageError(f"--collected {args.collected}: no file with "
+                             "scale.grid.<planner>.<exchange>.g<G>.n<N> lines")
         sizes = sorted({size for _, _, size, _ in grid})
         print(grid_tables(grid, sizes))
         if args.figure is not None:
             plot_grid(grid, sizes, args.figure)
-        return 0
+        return
+    evaluates = args.eval or args.grid or args.ranges is not None
+    if evaluates and not (args.policy / "config.yaml").is_file():
+        raise UsageError(f"--policy {args.policy}: no config.yaml there")
+    exchanges, global_planners, range_planners = _planner_lists(args)
+    if args.ranges is not None:
+        evaluate_ranges(args.policy, max(int(n) for n in args.teams.split(",")), args.size,
+                        _radio_ranges(args.ranges, range_planners), args.worlds, args.set,
+                        args.figure, exchanges, global_planners, range_planners)
+    elif args.grid:
+        sizes = [int(g) for g in args.world_sizes.split(",")]
+        unknown = sorted(set(sizes) - set(PAPER_RADIO))
+        if unknown:
+            raise UsageError(f"--world-sizes {unknown}: allowed {sorted(PAPER_RADIO)} (the "
+                             "paper's worlds, each with its radio range)")
+        evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
+                      args.worlds, args.set, args.figure, exchanges, global_planners,
+                      range_planners)
+    else:
+        largest = time_teams(sorted(int(n) for n in args.teams.split(",")), args)
+        if args.eval:
+            evaluate_cell(args.policy, largest, args.size, args.radio_range, args.worlds,
+                          args.set, args.figure)
+
+
+def _planner_lists(args) -> tuple[list[str], list[str], list[str]]:
+    """--exchanges, --global-planners (none without the global exchange), --range-planners."""
     exchanges = args.exchanges.split(",")
     global_planners = args.global_planners.split(",") if "global" in exchanges else []
     range_planners = args.range_planners.split(",")
@@ -123,48 +163,33 @@ def main(argv=None) -> int:
                                  ("--global-planners", global_planners, PLANNERS),
                                  ("--range-planners", range_planners, PLANNERS)):
         if not set(given) <= set(allowed):
-            print(f"error: {flag} {sorted(set(given) - set(allowed))}: allowed "
-                  f"{', '.join(allowed)}", file=sys.stderr)
-            return 2
-    if args.ranges is not None:
-        try:
-            ranges = sorted({float(r) for r in args.ranges.split(",")})
-        except ValueError:
-            ranges = []
-        if not ranges or not all(0 < r < float("inf") for r in ranges):
-            print(f"error: --ranges {args.ranges}: allowed a comma-separated list of finite "
-                  "positive radio ranges (fractions of the world), e.g. 0.12,0.18",
-                  file=sys.stderr)
-            return 2
-        if "policy" not in range_planners:
-            print("error: --range-planners: --ranges compares the policy with relay, so "
-                  "the list must name policy", file=sys.stderr)
-            return 2
-        evaluate_ranges(args.policy, max(int(n) for n in args.teams.split(",")), args.size,
-                        ranges, args.worlds, args.set, args.figure, exchanges,
-                        global_planners, range_planners)
-        return 0
-    if args.grid:
-        sizes = [int(g) for g in args.world_sizes.split(",")]
-        unknown = sorted(set(sizes) - set(PAPER_RADIO))
-        if unknown:
-            print(f"error: --world-sizes {unknown}: allowed {sorted(PAPER_RADIO)} (the paper's "
-                  "worlds, each with its radio range)", file=sys.stderr)
-            return 2
-        evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
-                      args.worlds, args.set, args.figure, exchanges, global_planners,
-                      range_planners)
-        return 0
-    teams = sorted(int(n) for n in args.teams.split(","))
+            raise UsageError(f"{flag} {sorted(set(given) - set(allowed))}: allowed "
+                             f"{', '.join(allowed)}")
+    return exchanges, global_planners, range_planners
+
+
+def _radio_ranges(text: str, range_planners: list[str]) -> list[float]:
+    """--ranges as sorted distinct floats."""
+    try:
+        ranges = sorted({float(r) for r in text.split(",")})
+    except ValueError:
+        ranges = []
+    if not ranges or not all(0 < r < float("inf") for r in ranges):
+        raise UsageError(f"--ranges {text}: allowed a comma-separated list of finite positive "
+                         "radio ranges (fractions of the world), e.g. 0.12,0.18")
+    if "policy" not in range_planners:
+        raise UsageError("--range-planners: --ranges compares the policy with relay, so the "
+                         "list must name policy")
+    return ranges
+
+
+def time_teams(teams: list[int], args) -> int:
+    """Times the random team's step for each N of `teams` (JSON lines) -> the largest N."""
     micros = {}
     for n in teams:
-        try:
-            cfg = config.load(None, [f"world.size={args.size}", f"robots.count={n}",
-                                     f"radio.range={args.radio_range}",
-                                     f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.set])
-        except config.ConfigError as err:
-            print(f"error: {err}", file=sys.stderr)
-            return 2
+        cfg = config.load(None, [f"world.size={args.size}", f"robots.count={n}",
+                                 f"radio.range={args.radio_range}",
+                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.set])
         stepper = RandomTeamStepper(EnvParams.from_config(cfg), DynamicParams.from_config(cfg),
                                     args.envs)
         stepper.reset()
@@ -177,10 +202,7 @@ def main(argv=None) -> int:
     emit(f"scale.cost_growth_n{last}_vs_n{first}", micros[last] / micros[first], "ratio")
     # ru_maxrss is in kilobytes on Linux
     emit("scale.peak_rss_mb", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, "MB")
-    if args.eval:
-        evaluate_cell(args.policy, last, args.size, args.radio_range, args.worlds, args.set,
-                      args.figure)
-    return 0
+    return last
 
 
 PAPER_RADIO = {75: 0.2, 100: 0.15, 125: 0.12}  # the paper's rho per world size
