@@ -136,3 +136,38 @@ def test_ranges_print_each_range_and_the_ratio_of_their_own_figures(tmp_path):
                             / lines["scale.range.nbv.global"]["value"], rel_tol=1e-3)
         assert ratio["best_global"] == "nbv" and 0 <= ratio["p"] <= 1
     assert figure.stat().st_size > 0
+
+
+def test_ranges_figures_come_from_the_runs_of_each_range(tmp_path, monkeypatch, capsys):
+    """--ranges' lines and ratios from hand-made runs (the sweep itself is the slow test's):
+    each relay range over the best global planner, with Welch's p by scipy."""
+    import importlib.util
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    found = {("policy", "relay", 64, 0.12): [95.0, 96.0, 97.0],
+             ("policy", "relay", 64, 0.25): [98.5, 99.0, 99.5],
+             ("policy", "single_hop", 64, 0.12): [94.0, 95.0, 95.5],
+             ("policy", "global", 64, float("inf")): [98.0, 98.5, 98.6],
+             ("nbv", "global", 64, float("inf")): [98.8, 99.0, 98.9]}
+    runs = {key: SimpleNamespace(planner=key[0], discovered=np.asarray(v))
+            for key, v in found.items()}
+    monkeypatch.setattr(scale, "sweep_exchanges", lambda *args: runs)
+    figure = tmp_path / "ranges.png"
+    scale.evaluate_ranges(Path("unused"), 64, 125, [0.12, 0.25], 3, [], figure)
+    lines = {r["name"]: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    assert lines["scale.range.policy.single_hop.r0.12"]["value"] == pytest.approx(94.8333, abs=1e-3)
+    assert lines["scale.range.nbv.global"]["std"] == pytest.approx(0.1)
+    assert "scale.range.policy.single_hop.r0.25" not in lines
+    for rho in ("0.12", "0.25"):
+        relay = found["policy", "relay", 64, float(rho)]
+        ratio = lines[f"scale.range.relay_vs_best_global.r{rho}"]
+        assert ratio["value"] == pytest.approx(np.mean(relay) / 98.9, abs=1e-4)
+        assert ratio["best_global"] == "nbv"
+        p = stats.ttest_ind(relay, found["nbv", "global", 64, float("inf")], equal_var=False).pvalue
+        assert ratio["p"] == pytest.approx(p, rel=1e-2)
+    assert figure.stat().st_size > 0
