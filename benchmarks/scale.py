@@ -330,9 +330,11 @@ def plot_ranges(runs: dict, path: Path, title: str) -> None:
                  if key[:2] == (planner, exchange)}
         if not found:
             continue
-        # global: one figure (at rho = inf), drawn across the ranges
-        xs = ranges if exchange == "global" else sorted(found)
-        each = [found[x if exchange != "global" else float("inf")] for x in xs]
+        if exchange == "global":  # one figure (at rho = inf), drawn across the ranges
+            xs, each = ranges, [found[float("inf")]] * len(ranges)
+        else:
+            xs = sorted(found)
+            each = [found[x] for x in xs]
         _band(ax[0], xs, [f.mean() for f in each],
               [f.std(ddof=1) if len(f) > 1 else 0.0 for f in each], planner, exchange,
               marker=None if exchange == "global" else "o")
