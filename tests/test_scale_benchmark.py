@@ -1,12 +1,15 @@
 """benchmarks/scale.py: the grid's tables from JSON lines collected over runs (--collected)
 and, slow, the --eval cell's figures and curves."""
 
+import importlib.util
 import json
 import math
 import subprocess
 import sys
 from pathlib import Path
+from types import SimpleNamespace
 
+import numpy as np
 import pytest
 from scipy import stats
 
@@ -141,11 +144,6 @@ def test_ranges_print_each_range_and_the_ratio_of_their_own_figures(tmp_path):
 def test_ranges_figures_come_from_the_runs_of_each_range(tmp_path, monkeypatch, capsys):
     """--ranges' lines and ratios from hand-made runs (the sweep itself is the slow test's):
     each relay range over the best global planner, with Welch's p by scipy."""
-    import importlib.util
-    from types import SimpleNamespace
-
-    import numpy as np
-
     spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
     scale = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(scale)
