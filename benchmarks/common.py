@@ -17,7 +17,7 @@ from typing import Any, Callable
 import jax
 
 from jaxmripp import allocator
-from jaxmripp.sim import xla_options
+from jaxmripp.sim.xla_options import simulation_jit
 
 allocator.keep_freed_memory()
 
@@ -56,11 +56,6 @@ def median_cpu_seconds(fn: Callable[[], Any], repeats: int = 5) -> float:
         jax.block_until_ready(fn())
         times.append(time.process_time() - start)
     return statistics.median(times)
-
-
-def simulation_jit(fn: Callable, **kwargs) -> Callable:
-    """`jax.jit` with the compiler options evaluation sweeps compile simulation with."""
-    return jax.jit(fn, compiler_options=xla_options.simulation(), **kwargs)
 
 
 def batch_arguments(description: str) -> argparse.ArgumentParser:

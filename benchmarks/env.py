@@ -34,11 +34,11 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import (RandomTeamStepper, batch_arguments, emit, median_seconds,  # noqa: E402
-                    simulation_jit)
+from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, maps, sensing, view  # noqa: E402
 from jaxmripp.sim import xla_options  # noqa: E402
+from jaxmripp.sim.xla_options import simulation_jit  # noqa: E402
 from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 

@@ -238,8 +238,8 @@ def _shape_run(planner: str, shape: Shape, worlds: int, trials: int, max_steps: 
 
 @functools.lru_cache(maxsize=8)
 def _reset_fn(params: EnvParams):
-    return jax.jit(jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)),
-                   compiler_options=xla_options.simulation())
+    return xla_options.simulation_jit(
+        jax.vmap(lambda k, d: envmod.reset(k, params, d), in_axes=(0, None)))
 
 
 def time_planning(planner: Planner, params: EnvParams, dynamics: list[DynamicParams],

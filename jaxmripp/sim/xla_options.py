@@ -20,6 +20,8 @@ import functools
 import os
 from pathlib import Path
 
+from typing import Callable
+
 import jax
 
 VECTOR_WIDTH = "xla_cpu_prefer_vector_width"
@@ -30,6 +32,11 @@ def simulation(options: dict | None = None) -> dict:
     """The compiler options of a simulation program: the host's (`host_simulation`)
     updated with `options` (which win where both name an option)."""
     return {**host_simulation(), **(options or {})}
+
+
+def simulation_jit(fn: Callable, **kwargs) -> Callable:
+    """`jax.jit(fn, **kwargs)` compiled with the simulation options (`simulation()`)."""
+    return jax.jit(fn, compiler_options=simulation(), **kwargs)
 
 
 @functools.cache
