@@ -187,9 +187,12 @@ def time_teams(teams: list[int], args) -> int:
     """Times the random team's step for each N of `teams` (JSON lines) -> the largest N."""
     micros = {}
     for n in teams:
+        # The random team steps without the sector rule, whatever --set gives the sweeps
+        # (a radio.sector_count above a timed team's N would otherwise be refused).
         cfg = config.load(None, [f"world.size={args.size}", f"robots.count={n}",
                                  f"radio.range={args.radio_range}",
-                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.set])
+                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.set,
+                                 "eval.sectors=false", "train.sectors=false"])
         stepper = RandomTeamStepper(EnvParams.from_config(cfg), DynamicParams.from_config(cfg),
                                     args.envs)
         stepper.reset()

@@ -208,6 +208,17 @@ def test_sector_split_travels_in_the_header_and_older_headers_keep_the_angle_spl
         RuntimeSpec.from_header(header)
 
 
+def test_sector_count_travels_in_the_header_and_older_headers_give_each_robot_one():
+    shared = dataclasses.replace(CFG, radio=dataclasses.replace(CFG.radio, sector_count=2))
+    assert spec_of(shared).sector_count == 2 and spec_of().sector_count == 0
+    header = weights.jsonable(export.header(shared))
+    del header["config"]["radio"]["sector_count"]  # exported before the setting
+    assert RuntimeSpec.from_header(header).sector_count == 0
+    header["config"]["radio"]["sector_count"] = -2
+    with pytest.raises(WeightsFormatError, match="sector_count is -2; allowed: 0 or more"):
+        RuntimeSpec.from_header(header)
+
+
 def test_peer_round_cap_travels_in_the_header_and_older_headers_are_uncapped():
     capped = dataclasses.replace(CFG, gp=dataclasses.replace(CFG.gp, peer_rounds=2))
     assert spec_of(capped).gp.peer_rounds == 2

@@ -318,18 +318,18 @@ def test_the_runtime_holds_exactly_the_robots_the_env_holds(priority):
     assert holds >= 2, "no robot held: pick other seeds"
 
 
-@pytest.mark.parametrize("split", [None, "angle", "area"],
-                         ids=["whole_mask", "sectors", "equal_area_sectors"])
-def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, split):
+@pytest.mark.parametrize("split, count", [(None, 0), ("angle", 0), ("area", 0), ("angle", 2)],
+                         ids=["whole_mask", "sectors", "equal_area_sectors", "shared_sectors"])
+def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, split, count):
     """The runtime policy's logits, memory and choice are the Flax policy's on the env's
     observation; with sectors on both sides (`OnboardPlanner(sectors=True)`, the JAX
-    sweep's `eval.sectors`; `radio.sector_split` from the export) also on the same
-    sector-restricted masks."""
+    sweep's `eval.sectors`; `radio.sector_split` and `radio.sector_count` from the
+    export) also on the same sector-restricted masks."""
     sectors = split is not None
     network, params = init_params(CFG, seed=3)
     export.export(dataclasses.replace(CFG, radio=dataclasses.replace(
-        CFG.radio, sector_split=split or "angle")), params, tmp_path)
-    dyn = sim.dyn.with_values(sector_area=split == "area")
+        CFG.radio, sector_split=split or "angle", sector_count=count)), params, tmp_path)
+    dyn = sim.dyn.with_values(sector_area=split == "area", sector_count=count)
     seed = 4
     obs, state = sim.reset(keys_of(seed, 1)[0])
     planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial), sectors=sectors)

@@ -77,6 +77,9 @@ class RadioConfig:
     # how eval.sectors / train.sectors divide the world: angle (equal azimuth spans) or
     # area (equal ground areas; jaxmripp.spec.sectors)
     sector_split: str = "angle"
+    # how many sectors: 0 one per robot (robot i the i-th), K >= 1 K sectors that the
+    # robots share in order of their pads' distance from the first pad
+    sector_count: int = 0
 
 
 @dataclasses.dataclass(frozen=True)

@@ -265,7 +265,8 @@ class OnboardPlanner(RadioExchange):
         if self.sectors and sectors_spec.applies(self.spec.radio_range):
             own = sectors_spec.own_sector(c.position, np.asarray(self.spec.start, F32),
                                           self.id, self.team_size,
-                                          equal_area=self.spec.sector_split == "area")
+                                          equal_area=self.spec.sector_split == "area",
+                                          count=self.spec.sector_count)
             mask = sectors_spec.sector_mask(mask, features, own)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
 

@@ -75,6 +75,7 @@ class RuntimeSpec:
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
     sector_split: str = "angle"  # radio.sector_split (jaxmripp.spec.sectors)
+    sector_count: int = 0  # radio.sector_count (jaxmripp.spec.sectors)
 
     @property
     def gain(self) -> GainModel:
@@ -147,6 +148,8 @@ class RuntimeSpec:
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
             sector_split=choice("radio", "sector_split", SECTOR_SPLITS, default="angle"),
+            sector_count=_at_least_zero(get("radio", "sector_count", int, default=0),
+                                        "config.radio.sector_count"),
             gp=GPSpec(**{name: get("gp", name, kind, _GP_DEFAULTS.get(name))
                          for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
@@ -158,6 +161,12 @@ class RuntimeSpec:
             escape=get("safety", "escape", bool, default=False),
             **ahead,
         )
+
+
+def _at_least_zero(value: int, name: str) -> int:
+    if value < 0:
+        raise WeightsFormatError(f"export header: {name} is {value}; allowed: 0 or more")
+    return value
 
 
 def header_field(mapping, key, kind, prefix=""):

@@ -142,6 +142,6 @@ def in_sectors(obs, state, dyn):
     n = obs.mask.shape[0]
     own = sectors_spec.own_sector(state.candidates.position, dyn.start,
                                   jnp.arange(n)[:, None], n, xp=jnp,
-                                  equal_area=dyn.sector_area > 0)
+                                  equal_area=dyn.sector_area > 0, count=dyn.sector_count)
     mask = sectors_spec.sector_mask(obs.mask, obs.features, own)
     return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))
