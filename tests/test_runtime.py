@@ -214,9 +214,17 @@ def test_sector_count_travels_in_the_header_and_older_headers_give_each_robot_on
     header = weights.jsonable(export.header(shared))
     del header["config"]["radio"]["sector_count"]  # exported before the setting
     assert RuntimeSpec.from_header(header).sector_count == 0
-    header["config"]["radio"]["sector_count"] = -2
-    with pytest.raises(WeightsFormatError, match="sector_count is -2; allowed: 0 or more"):
-        RuntimeSpec.from_header(header)
+    onboard = RuntimeSpec.from_header(weights.jsonable(export.header(shared)))
+    with pytest.raises(ValueError, match="team_size: got 1; the export's radio.sector_count "
+                       "= 2 needs at least 2 robots with sectors=True"):
+        OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True)
+    assert OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv").team_size == 1
+    team = header["config"]["robots"]["count"]
+    for bad in (-2, team + 1):
+        header["config"]["radio"]["sector_count"] = bad
+        with pytest.raises(WeightsFormatError, match=f"sector_count is {bad}; allowed: 0 "
+                           f"\\(one sector per robot\\) to robots.count = {team}"):
+            RuntimeSpec.from_header(header)
 
 
 def test_peer_round_cap_travels_in_the_header_and_older_headers_are_uncapped():

@@ -131,6 +131,7 @@ class OnboardPlanner(RadioExchange):
         mode = mode or ("policy" if policy is not None else "greedy")
         validation.settings(mode, policy is not None, robot_id, team_size, budget,
                             spec.flight, spec.priority)
+        validation.sector_team(sectors, spec.sector_count, team_size)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size

@@ -148,8 +148,8 @@ class RuntimeSpec:
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
             sector_split=choice("radio", "sector_split", SECTOR_SPLITS, default="angle"),
-            sector_count=_at_least_zero(get("radio", "sector_count", int, default=0),
-                                        "config.radio.sector_count"),
+            sector_count=_sector_count(get("radio", "sector_count", int, default=0),
+                                       get("robots", "count", int)),
             gp=GPSpec(**{name: get("gp", name, kind, _GP_DEFAULTS.get(name))
                          for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
@@ -163,9 +163,11 @@ class RuntimeSpec:
         )
 
 
-def _at_least_zero(value: int, name: str) -> int:
-    if value < 0:
-        raise WeightsFormatError(f"export header: {name} is {value}; allowed: 0 or more")
+def _sector_count(value: int, team: int) -> int:
+    """radio.sector_count as the sector rule needs it: a robot for every sector."""
+    if not 0 <= value <= team:
+        raise WeightsFormatError(f"export header: config.radio.sector_count is {value}; "
+                                 f"allowed: 0 (one sector per robot) to robots.count = {team}")
     return value
 
 

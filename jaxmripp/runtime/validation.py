@@ -40,6 +40,15 @@ def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget:
         raise ValueError(f"spec.priority: got {priority!r}; allowed: {', '.join(PRIORITIES)}")
 
 
+def sector_team(sectors: bool, sector_count: int, team_size: int) -> None:
+    """With the sector rule on, every one of the export's radio.sector_count sectors
+    needs a robot (ValueError names team_size)."""
+    if sectors and sector_count > team_size:
+        raise ValueError(f"team_size: got {team_size}; the export's radio.sector_count = "
+                         f"{sector_count} needs at least {sector_count} robots with "
+                         "sectors=True")
+
+
 def decide_mode(mode: str, has_policy: bool) -> str:
     """The mode of one `decide` call: the rules work without weights, policy needs
     them."""
