@@ -130,8 +130,7 @@ class OnboardPlanner(RadioExchange):
         team_size = spec.team_size if team_size is None else int(team_size)
         mode = mode or ("policy" if policy is not None else "greedy")
         validation.settings(mode, policy is not None, robot_id, team_size, budget,
-                            spec.flight, spec.priority)
-        validation.sector_team(sectors, spec.sector_count, team_size)
+                            spec.flight, spec.priority, spec.sector_count if sectors else 0)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size
@@ -264,11 +263,10 @@ class OnboardPlanner(RadioExchange):
         done = self.step >= self.max_steps
         mask = c.valid & safe & (not done)
         if self.sectors and sectors_spec.applies(self.spec.radio_range):
-            own = sectors_spec.own_sector(c.position, np.asarray(self.spec.start, F32),
-                                          self.id, self.team_size,
-                                          equal_area=self.spec.sector_split == "area",
-                                          count=self.spec.sector_count)
-            mask = sectors_spec.sector_mask(mask, features, own)
+            mask = sectors_spec.offered(mask, features, c.position,
+                                        np.asarray(self.spec.start, F32), self.id, self.team_size,
+                                        equal_area=self.spec.sector_split == "area",
+                                        count=self.spec.sector_count)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
 
         if not mask.any():

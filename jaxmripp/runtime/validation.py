@@ -22,15 +22,20 @@ MODES = ("policy", "greedy", "nbv", "random")
 
 
 def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget: float,
-             flight: str, priority: str) -> None:
+             flight: str, priority: str, sector_count: int = 0) -> None:
     """The planner's constructor arguments and the spec's safety rules (ValueError names
-    the argument)."""
+    the argument); sector_count: the export's radio.sector_count where the sector rule
+    is on (every sector needs a robot), else 0."""
     if mode not in MODES:
         raise ValueError(f"mode: got {mode!r}; allowed: {', '.join(MODES)}")
     if mode == "policy" and not has_policy:
         raise ValueError("mode 'policy' needs a policy (OnboardPlanner.load an export)")
     if not 0 <= int(robot_id) < team_size:
         raise ValueError(f"robot_id: got {robot_id}; allowed: 0 .. {team_size - 1}")
+    if sector_count > team_size:
+        raise ValueError(f"team_size: got {team_size}; the export's radio.sector_count = "
+                         f"{sector_count} needs at least {sector_count} robots with "
+                         "sectors=True")
     if not (math.isfinite(budget) and budget > 0):
         raise ValueError(f"budget: got {budget}; allowed: a positive number")
     if flight != "known_free":
@@ -38,15 +43,6 @@ def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget:
                          "only")
     if priority not in PRIORITIES:
         raise ValueError(f"spec.priority: got {priority!r}; allowed: {', '.join(PRIORITIES)}")
-
-
-def sector_team(sectors: bool, sector_count: int, team_size: int) -> None:
-    """With the sector rule on, every one of the export's radio.sector_count sectors
-    needs a robot (ValueError names team_size)."""
-    if sectors and sector_count > team_size:
-        raise ValueError(f"team_size: got {team_size}; the export's radio.sector_count = "
-                         f"{sector_count} needs at least {sector_count} robots with "
-                         "sectors=True")
 
 
 def decide_mode(mode: str, has_policy: bool) -> str:

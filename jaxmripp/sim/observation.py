@@ -140,8 +140,7 @@ def in_sectors(obs, state, dyn):
     """The team's observations (N, ...) with the sector rule of `jaxmripp.spec.sectors`
     applied to their masks (where it applies at dyn.radio_range)."""
     n = obs.mask.shape[0]
-    own = sectors_spec.own_sector(state.candidates.position, dyn.start,
-                                  jnp.arange(n)[:, None], n, xp=jnp,
-                                  equal_area=dyn.sector_area > 0, count=dyn.sector_count)
-    mask = sectors_spec.sector_mask(obs.mask, obs.features, own)
+    mask = sectors_spec.offered(obs.mask, obs.features, state.candidates.position, dyn.start,
+                                jnp.arange(n)[:, None], n, xp=jnp,
+                                equal_area=dyn.sector_area > 0, count=dyn.sector_count)
     return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))

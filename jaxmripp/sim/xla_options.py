@@ -19,7 +19,6 @@ from __future__ import annotations
 import functools
 import os
 from pathlib import Path
-
 from typing import Callable
 
 import jax

@@ -114,6 +114,15 @@ def _equal_area_bounds(offset, away, corner_azimuth, k, sectors, xp, azimuth_of)
     return azimuth_of(cut[:, 0], cut[:, 1])
 
 
+def offered(mask, features, position, start, robot, team: int, xp=np, equal_area=False,
+            count=0):
+    """(..., L) mask, (..., L, F) features and (..., L, 3) positions of a robot's
+    candidates -> (..., L) the mask the rule offers it (`own_sector`, `sector_mask`);
+    the rest as `own_sector` takes them."""
+    own = own_sector(position, start, robot, team, xp=xp, equal_area=equal_area, count=count)
+    return sector_mask(mask, features, own)
+
+
 def sector_mask(mask, features, own):
     """(..., L) mask, (..., L, F) features, (..., L) `own_sector` -> (..., L) the mask
     the robot is offered."""
