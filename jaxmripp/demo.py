@@ -65,6 +65,9 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--sectors", action="store_true",
                         help="each robot keeps to its sector of the world while it has unknown "
                              "views there (jaxmripp.spec.sectors)")
+    parser.add_argument("--sector-count", type=int, default=None, metavar="K",
+                        help="with --sectors: K sectors shared by the team "
+                             "(radio.sector_count; default: the export's)")
     parser.add_argument("--escape", action="store_true",
                         help="robots that met out of radio range may fly apart "
                              "(safety.escape; default: the export's setting)")
@@ -93,6 +96,18 @@ def main(argv: list[str] | None = None) -> float:
     size = args.size or spec.size
     spec = dataclasses.replace(spec, size=size, escape=spec.escape or args.escape)
     n = args.robots or spec.team_size
+    per_robot = args.budget / n
+    steps = max(spec.max_steps, int(math.ceil(per_robot / spec.shell[0])) + 4)
+    kappa = cfg.eval.greedy_kappa if args.kappa is None else args.kappa
+    lam = cfg.eval.greedy_lambda if args.lam is None else args.lam
+    try:
+        planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
+                                   lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
+                                   sectors=args.sectors, sector_count=args.sector_count)
+                    for i in range(n)]
+    except ValueError as err:
+        print(f"error: {err}", file=sys.stderr)
+        raise SystemExit(2) from None
     world_cfg = dataclasses.replace(cfg.world, size=size, layout=args.layout,
                                     targets=(cfg.world.targets[1],) * 2)
     world = jax.jit(worldmod.generate, static_argnums=1)(jax.random.key(args.seed), world_cfg)
@@ -101,14 +116,6 @@ def main(argv: list[str] | None = None) -> float:
     cast = jax.jit(jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None)),
                    static_argnums=(3, 4))
 
-    per_robot = args.budget / n
-    steps = max(spec.max_steps, int(math.ceil(per_robot / spec.shell[0])) + 4)
-    kappa = cfg.eval.greedy_kappa if args.kappa is None else args.kappa
-    lam = cfg.eval.greedy_lambda if args.lam is None else args.lam
-    planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
-                               lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
-                               sectors=args.sectors)
-                for i in range(n)]
     position = pads(spec.start, n, spacing)
     heading = np.full(n, spec.start_heading, np.int32)
     blocked = np.zeros(n, bool)

@@ -1,5 +1,5 @@
 """`python -m jaxmripp.demo`: the shipped policy flies a short mission on the NumPy runtime,
-and a bad export gives one error line."""
+and a bad export or sector count gives one error line."""
 
 import re
 from pathlib import Path
@@ -28,3 +28,15 @@ def test_a_missing_export_gives_one_error_line(tmp_path, capsys):
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and err.startswith("error: ") and "absent" in err
+
+
+@pytest.mark.parametrize("flags, message", [
+    (["--sector-count", "2"], "sector_count: got 2; it needs sectors=True"),
+    (["--sectors", "--sector-count", "4"], "sector_count: got 4; allowed: an integer 0 .. 3"),
+], ids=["without_sectors", "more_than_robots"])
+def test_a_bad_sector_count_gives_one_error_line(capsys, flags, message):
+    with pytest.raises(SystemExit) as exit_info:
+        demo.main([*flags, "--robots", "3"])
+    assert exit_info.value.code == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and message in err

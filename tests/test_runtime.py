@@ -219,6 +219,18 @@ def test_sector_count_travels_in_the_header_and_older_headers_give_each_robot_on
                        "= 2 needs at least 2 robots with sectors=True"):
         OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True)
     assert OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv").team_size == 1
+    # The planner's own sector_count replaces the export's, within the same bounds.
+    assert OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True,
+                          sector_count=1).sector_count == 1
+    assert OnboardPlanner(onboard, 0, 1.0, mode="nbv", sectors=True).sector_count == 2
+    assert OnboardPlanner(onboard, 0, 1.0, mode="nbv").sector_count == 0
+    for bad in (-1, 2, 1.5, True):
+        with pytest.raises(ValueError, match=f"sector_count: got {bad!r}; allowed: an integer "
+                           "0 .. 1"):
+            OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True,
+                           sector_count=bad)
+    with pytest.raises(ValueError, match="sector_count: got 2; it needs sectors=True"):
+        OnboardPlanner(onboard, 0, 1.0, mode="nbv", sector_count=2)
     team = header["config"]["robots"]["count"]
     for bad in (-2, team + 1):
         header["config"]["radio"]["sector_count"] = bad

@@ -12,27 +12,27 @@ One planning round, on every robot, in this order (the JAX env's order, `jaxmrip
     for data in radio.received(): planner.receive_intent(data)  # their targets
     decision = planner.resolve()                                # the pose to fly, or a hold
 
-`sense` charges the budget for the move just made, records the visited pose and the
-number of windows seen from it, writes the observed voxels into the map and marks the
-robot's own voxel FREE. With `safety.takeoff_scan` the first `sense` is the take-off scan:
-the caller turns the robot through the four headings at its start pose and passes every
-voxel seen on the way (n_seen: the windows seen at the start heading); it is charged
-`SCAN_TURNS` turns. `receive` stores what a neighbour visited and where it is now.
-With `spec.share_maps` (`jaxmripp.spec.sharing`), `map_message` sends every robot heard
-this round the voxels of this robot's map it may lack (`sharing`; the size in bytes is
-kept in `last_map_message_bytes`) and `receive_map` merges the delta addressed to this
-robot, so that its map is the one the env's merge gives; a robot that heard nobody may
-skip both. `decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`),
-draws candidate poses (`candidates`) or takes ones supplied by the caller, builds the
-policy's inputs on the merged map (the rule of `jaxmripp.spec.layout`, in `observation`,
-with the view gain of `jaxmripp.spec.view`, in `view`, and the lookahead input, in
-`lookahead`, where the policy has it) and picks the next pose with the
-exported policy or the greedy rule of `jaxmripp.evaluation.baselines.greedy_planner`.
-`resolve` applies the intent rule of `jaxmripp.spec.flight` (with `safety.intents`): if the
-chosen flight comes within d_c of the flight announced by a higher-priority robot heard
-(`safety.priority`), the robot holds -- it stays where it is, is charged nothing, and the
-next `sense` gets the same pose. Inputs are checked first (`validation`), so a rejected
-call changes nothing, and calls out of order (`ROUND` in `exchange`) are refused.
+`sense` charges the budget for the move just made, records the visited pose and the number
+of windows seen from it, writes the observed voxels into the map and marks the robot's own
+voxel FREE. With `safety.takeoff_scan` the first `sense` is the take-off scan: the caller
+turns the robot through the four headings at its start pose and passes every voxel seen on
+the way (n_seen: the windows seen at the start heading); it is charged `SCAN_TURNS` turns.
+`receive` stores what a neighbour visited and where it is now. With `spec.share_maps`
+(`jaxmripp.spec.sharing`), `map_message` sends every robot heard this round the voxels of
+this robot's map it may lack (`sharing`; the size in bytes is kept in
+`last_map_message_bytes`) and `receive_map` merges the delta addressed to this robot, so
+that its map is the one the env's merge gives; a robot that heard nobody may skip both.
+`decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`), draws candidate
+poses (`candidates`) or takes ones supplied by the caller, builds the policy's inputs on the
+merged map (the rule of `jaxmripp.spec.layout`, in `observation`, with the view gain of
+`jaxmripp.spec.view`, in `view`, and the lookahead input, in `lookahead`, where the policy
+has it) and picks the next pose with the exported policy or the greedy rule of
+`jaxmripp.evaluation.baselines.greedy_planner`. `resolve` applies the intent rule of
+`jaxmripp.spec.flight` (with `safety.intents`): if the chosen flight comes within d_c of the
+flight announced by a higher-priority robot heard (`safety.priority`), the robot holds -- it
+stays where it is, is charged nothing, and the next `sense` gets the same pose. Inputs are
+checked first (`validation`), so a rejected call changes nothing, and calls out of order
+(`ROUND` in `exchange`) are refused.
 
 Safety filter (`safety`): whatever picks the pose, it is chosen among candidates whose
 straight flight is known free (every voxel it traverses is FREE in the robot's map, the
@@ -42,10 +42,9 @@ none is left the robot hovers: the decision is its current pose, `hover` is True
 `reason` says why.
 
 Differences from the JAX env, on purpose: the radio is single hop (the paper's; a relay
-export is refused by nothing but still runs single hop, maps included), a robot with no
-safe candidate hovers and tries again next round instead of being retired, and the
-utility GP is always the robot's own (a shared training-time GP does not exist on a
-robot).
+export is refused by nothing but still runs single hop, maps included), a robot with no safe
+candidate hovers and tries again next round instead of being retired, and the utility GP is
+always the robot's own (a shared training-time GP does not exist on a robot).
 """
 
 from __future__ import annotations
@@ -65,7 +64,7 @@ from jaxmripp.runtime.gp import GaussianProcess
 from jaxmripp.runtime.mapping import OccupancyMap, voxel_ahead
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.sharing import MapSharing
-from jaxmripp.runtime.weights import RuntimeSpec
+from jaxmripp.runtime import weights
 from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, OCCUPIED
 from jaxmripp.spec import layout
@@ -102,7 +101,7 @@ class OnboardPlanner(RadioExchange):
 
     def __init__(
         self,
-        spec: RuntimeSpec,
+        spec: weights.RuntimeSpec,
         robot_id: int,
         budget: float,
         team_size: int | None = None,
@@ -114,6 +113,7 @@ class OnboardPlanner(RadioExchange):
         max_steps: int | None = None,
         seed: int | None = None,
         sectors: bool = False,
+        sector_count: int | None = None,
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
@@ -124,13 +124,16 @@ class OnboardPlanner(RadioExchange):
         export's); seed: candidate sampling (default: id); sectors: keep to this robot's
         sector of the world, seen from the team's first pad `spec.start`, while it has
         unknown views there, if the radio range is short enough for the rule
-        (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps).
+        (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps); sector_count:
+        its `radio.sector_count` (default: the export's; with sectors only).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
         mode = mode or ("policy" if policy is not None else "greedy")
         validation.settings(mode, policy is not None, robot_id, team_size, budget,
-                            spec.flight, spec.priority, spec.sector_count if sectors else 0)
+                            spec.flight, spec.priority)
+        self.sector_count = validation.sector_count(sector_count, spec.sector_count, sectors,
+                                                    team_size)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size
@@ -170,9 +173,7 @@ class OnboardPlanner(RadioExchange):
     @classmethod
     def load(cls, export: str | Path, robot_id: int, budget: float, **kwargs) -> "OnboardPlanner":
         """A planner driven by an exported policy (directory or policy.json)."""
-        from jaxmripp.runtime.weights import load
-
-        exported = load(export)
+        exported = weights.load(export)
         return cls(exported.spec, robot_id, budget, policy=exported.policy, **kwargs)
 
     def _peer_ids(self):
@@ -266,7 +267,7 @@ class OnboardPlanner(RadioExchange):
             mask = sectors_spec.offered(mask, features, c.position,
                                         np.asarray(self.spec.start, F32), self.id, self.team_size,
                                         equal_area=self.spec.sector_split == "area",
-                                        count=self.spec.sector_count)
+                                        count=self.sector_count)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
 
         if not mask.any():
