@@ -62,6 +62,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         comm_gp=batched(empty_gp, n),
         candidates=None,
         step=jnp.zeros((), jnp.int32),
+        team_found=jnp.zeros((n,), jnp.float32),
         metrics=Metrics.zeros(n),
     )
     if params.safety.takeoff_scan:
@@ -184,7 +185,12 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
     finders = jnp.maximum(fresh.sum(axis=0), 1)
-    reward_discovery = (fresh / finders).sum(axis=1)
+    # reward.team_share pays part of r_u from what the whole team found since the robot's
+    # last move, so a robot gains nothing by taking a window a peer would have found.
+    team_found = state.team_found + jnp.any(fresh, axis=0).sum()
+    reward_discovery = (1.0 - dyn.team_share) * (fresh / finders).sum(axis=1) \
+        + dyn.team_share * jnp.where(moved, team_found / n, 0.0)
+    team_found = jnp.where(moved, 0.0, team_found)
     discovered = state.discovered | jnp.any(seen, axis=0)
 
     utility = jax.vmap(sensing.utility)(casts).astype(jnp.float32) / dyn.utility_norm
@@ -203,7 +209,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     if params.radio.share_maps:
         team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
     state = state.replace(team_map=team_map, building_top=top, heard=contact,
-                          discovered=discovered, history_pose=history_pose,
+                          discovered=discovered, team_found=team_found, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(
                               contacts=state.metrics.contacts + contact.sum() // 2))

@@ -108,6 +108,8 @@ class DynamicParams:
                              robot (jaxmripp.spec.sectors)
     alpha, beta, gamma: ()   reward weights of r_e (utility GP trace drop), r_u (new
                              windows) and r_c (communication GP trace drop)
+    team_share:         ()   the share of r_u paid from the team's new windows since the
+                             robot's last move (split over the N robots) instead of its own
     utility_norm:       ()   windows seen per pose are divided by it before entering a GP
     """
 
@@ -122,6 +124,7 @@ class DynamicParams:
     alpha: jax.Array
     beta: jax.Array
     gamma: jax.Array
+    team_share: jax.Array
     utility_norm: jax.Array
 
     @classmethod
@@ -137,7 +140,7 @@ class DynamicParams:
             pad_spacing=cfg.robots.pad_spacing, sector_area=cfg.radio.sector_split == "area",
             sector_count=cfg.radio.sector_count,
             alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
-            utility_norm=cfg.reward.utility_norm)
+            team_share=cfg.reward.team_share, utility_norm=cfg.reward.utility_norm)
 
     def with_values(self, **values) -> "DynamicParams":
         """A copy with some fields set from plain numbers, cast like `create` (a Python
