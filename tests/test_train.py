@@ -423,3 +423,15 @@ def test_training_chunks_cycle_through_the_radio_ranges_and_rollouts_keep_to_sec
     assert in_rule.all() and chosen_offered.all()
     in_rule, _ = rollout(np.inf)  # a radio reaching the whole world: no sectors
     assert not in_rule.all()
+
+
+def test_a_chunk_shorter_than_an_episode_is_warned_about():
+    """Environments restart at every chunk: 2 x 4 steps reach an 8-step episode's end,
+    1 x 4 steps never do."""
+    steps = ["train.rollout_steps=4", "episode.max_steps=8"]
+    short = cfgmod.load("configs/smoke.yaml", ["train.updates_per_chunk=1", *steps])
+    warning = trainmod.short_chunk_warning(short)
+    assert warning is not None and "4 times" in warning and "max_steps = 8" in warning
+    longer = cfgmod.load("configs/smoke.yaml",
+                         ["train.updates_per_chunk=2", "train.updates=2", *steps])
+    assert trainmod.short_chunk_warning(longer) is None

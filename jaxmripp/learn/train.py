@@ -184,6 +184,21 @@ def fresh_run_dir(root: Path, name: str) -> Path:
     return candidate
 
 
+def short_chunk_warning(cfg: Config) -> str | None:
+    """Why a chunk would end every episode before its end, or None.
+
+    Environments restart at every chunk boundary, so with fewer steps per chunk than an
+    episode's `episode.max_steps` the policy never learns from an episode's later steps
+    and no episode is counted in the metrics."""
+    steps = cfg.train.updates_per_chunk * cfg.train.rollout_steps
+    if steps >= cfg.episode.max_steps:
+        return None
+    return (f"warning: a chunk steps each environment {steps} times (train.updates_per_chunk "
+            f"x train.rollout_steps), fewer than an episode's episode.max_steps = "
+            f"{cfg.episode.max_steps}; environments restart at every chunk, so no episode "
+            "reaches its end: raise train.updates_per_chunk")
+
+
 def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: int | None = None,
           log: Callable[[str], None] = print, initial_params: Any = None) -> TrainState:
     """Trains into run_dir (config.yaml, metrics.jsonl, checkpoints/); returns the state.
@@ -201,6 +216,8 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
                                "train.envs / ppo.minibatches (environments per minibatch)")
     if cfg.train.blocks:
         trainer.data.check_divides(cfg.train.blocks, "train.blocks")
+    if (warning := short_chunk_warning(cfg)) is not None:
+        log(warning)
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
     resuming = resume and checkpoints.latest_step() is not None
     if resuming:
@@ -239,10 +256,11 @@ def train(cfg: Config, run_dir: Path, resume: bool = False, stop_after_chunks: i
             with open(run_dir / "metrics.jsonl", "a") as fh:
                 fh.write(json.dumps(record) + "\n")
         checkpoints.save(updates, state, record["discovered"])
+        ended = (f"discovered {100 * record['discovered']:.1f}%  return {record['return']:.2f}"
+                 if record["episodes"] else "no episode ended")
         log(f"chunk {index + 1}/{total_chunks}  updates {updates}  "
             f"agent-steps {record['env_steps']:,}  {record['agent_steps_per_s']:,.0f}/s  "
-            f"discovered {100 * record['discovered']:.1f}%  return {record['return']:.2f}  "
-            f"entropy {record['entropy']:.2f}  value-loss {record['value_loss']:.3f}")
+            f"{ended}  entropy {record['entropy']:.2f}  value-loss {record['value_loss']:.3f}")
     checkpoints.close()
     return state
 
