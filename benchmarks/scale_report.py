@@ -72,8 +72,9 @@ def _save(fig, axes, path: Path) -> None:
 
 
 def read_grid(path: Path) -> dict:
-    """{(planner, exchange, G, N): (mean, std)} from the scale.grid.* lines of a JSON-lines
-    file (other lines are skipped; a cell given twice keeps its last line)."""
+    """{(planner, exchange, G, N): (mean, std, worlds)} from the scale.grid.* lines of a
+    JSON-lines file (other lines are skipped; a cell given twice keeps its last line; a line
+    without a world count counts as 1)."""
     grid = {}
     for line in path.read_text().splitlines():
         record = json.loads(line) if line.startswith("{") else {}
