@@ -165,7 +165,7 @@ def test_worlds_shared_across_shapes(tiny_sweep):
 def test_outputs_written(tiny_sweep):
     _, result, _, out, paths = tiny_sweep
     for key in ("table", "csv", "json", "summary", "discovered_vs_budget_0.png",
-                "team_size", "episode_random", "gif_random"):
+                "team_size", "episode_random", "gif_random", "missed_windows_0.png"):
         assert paths[key].is_file() and paths[key].stat().st_size > 0, key
     table = (out / "results.md").read_text()
     assert "| random |" in table and "95% CI" in table
@@ -216,3 +216,23 @@ def test_cli_rejects_bad_arguments(tmp_path, capsys):
     assert cli.main(["--config", str(ROOT / "configs" / "smoke.yaml"),
                      "--policy", f"p={tmp_path}"]) == 2
     assert "no config.yaml" in capsys.readouterr().err
+
+
+def test_missed_windows_pools_the_episodes_and_counts_by_region():
+    from types import SimpleNamespace
+
+    from jaxmripp.evaluation import plots
+
+    # G = 20, two episodes of three window slots; the third slot of episode 0 is unused.
+    voxel = np.array([[[0, 10, 2], [10, 10, 15], [5, 5, 5]],
+                      [[10, 19, 10], [10, 10, 2], [3, 3, 3]]])
+    snapshot = SimpleNamespace(
+        height=np.zeros((2, 20, 20)), target_voxel=voxel,
+        target_valid=np.array([[True, True, False], [True, True, True]]),
+        found_at=np.array([[-1, -1, -1], [-1, 4, 0]]))
+    centres, counts = plots.missed_windows(SimpleNamespace(snapshot=snapshot))
+    # Missed: (0, 10, 2) at the x = 0 side and low; (10, 10, 15) inside and high;
+    # (10, 19, 10) at the y = 1 side, not low. The unused slot is not a window.
+    np.testing.assert_allclose(centres, (np.array([[0, 10, 2], [10, 10, 15], [10, 19, 10]])
+                                         + 0.5) / 20)
+    assert counts == {"windows": 5, "missed": 3, "edge": 2, "low": 1}

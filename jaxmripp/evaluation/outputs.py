@@ -72,6 +72,13 @@ def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None =
         paths["team_size"] = eval_plots.discovery_vs_team_size(
             out / "discovered_vs_team_size.png", result.runs)
     if render:
+        for i, group in enumerate(_by_team_world_budget(result.runs)):
+            if all(run.snapshot is not None for run in group):
+                shape = group[0].shape
+                paths[f"missed_windows_{i}.png"] = eval_plots.missed_map(
+                    out / f"missed_windows_{i}.png", group,
+                    title=f"windows never found: N = {shape.n_robots}, G = {shape.size}, "
+                          f"B = {shape.budget:g}, {len(group[0].discovered)} episodes")
         first = result.shapes()[0]
         for name, run in result.of(first).items():
             if run.snapshot is None:
@@ -81,6 +88,14 @@ def write_outputs(result: SweepResult, out_dir: str | Path, cfg: Config | None =
             if gif:
                 paths[f"gif_{name}"] = eval_plots.episode_gif(out / f"episode_{name}.gif", run, 0)
     return paths
+
+
+def _by_team_world_budget(runs: list) -> list[list]:
+    """Runs grouped by (N, G, B), in sweep order: a group differs in planner and radio range."""
+    groups: dict = {}
+    for run in runs:
+        groups.setdefault((run.shape.n_robots, run.shape.size, run.shape.budget), []).append(run)
+    return list(groups.values())
 
 
 def _jsonable(v):

@@ -1,4 +1,5 @@
-"""Plots of evaluation sweeps: discovery curves, team-size scaling, episode pictures, GIFs.
+"""Plots of evaluation sweeps: discovery curves, team-size scaling, maps of the windows
+missed, episode pictures, GIFs.
 
 Inputs are `cells.ShapeRun`s (NumPy arrays); nothing here imports JAX.
 """
@@ -58,6 +59,52 @@ def discovery_vs_team_size(path, runs: list) -> Path:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     return viz.save_figure(fig, path)
+
+
+# Regions of the missed-window maps, in unit-cube coordinates: a window this close to the
+# world's side faces a street the robots reach along the world's edge, one this low is
+# seen only from low flights between buildings.
+EDGE_STRIP = 0.05
+LOW_WINDOW = 0.25
+
+
+def missed_windows(run) -> tuple[np.ndarray, dict[str, int]]:
+    """The windows a ShapeRun's episodes never found, pooled over its episodes: their
+    centres (M, 3) in the unit cube and counts {"windows", "missed", "edge", "low"}
+    (missed within EDGE_STRIP of the world's side, below LOW_WINDOW)."""
+    s = run.snapshot
+    size = s.height.shape[-1]
+    valid = np.asarray(s.target_valid, bool)
+    missed = valid & (np.asarray(s.found_at) < 0)
+    centres = (np.asarray(s.target_voxel)[missed] + 0.5) / size
+    side = np.minimum(np.minimum(centres[:, 0], 1 - centres[:, 0]),
+                      np.minimum(centres[:, 1], 1 - centres[:, 1]))
+    return centres, {"windows": int(valid.sum()), "missed": int(missed.sum()),
+                     "edge": int((side < EDGE_STRIP).sum()),
+                     "low": int((centres[:, 2] < LOW_WINDOW).sum())}
+
+
+def missed_map(path, runs: list, title: str = "") -> Path:
+    """Top-down maps of the windows never found, pooled over the episodes (the same
+    worlds for every run of a sweep), one panel per run (planner and radio range),
+    coloured by height; each panel's title counts them by region (`missed_windows`)."""
+    fig, axes = plt.subplots(1, len(runs), figsize=(3.6 * len(runs), 4.0), squeeze=False)
+    for ax, run in zip(axes[0], runs):
+        centres, n = missed_windows(run)
+        points = ax.scatter(centres[:, 0], centres[:, 1], c=centres[:, 2], s=6,
+                            cmap="viridis", vmin=0.0, vmax=1.0)
+        ax.add_patch(plt.Rectangle((EDGE_STRIP, EDGE_STRIP), 1 - 2 * EDGE_STRIP,
+                                   1 - 2 * EDGE_STRIP, fill=False, linestyle=":",
+                                   color="0.5"))
+        ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal", xlabel="x", ylabel="y",
+               title=(f"{run.planner}, rho {run.shape.radio_range:g}\n"
+                      f"{n['missed']} of {n['windows']} missed: {n['edge']} at the side,\n"
+                      f"{n['low']} below z = {LOW_WINDOW:g}"))
+        ax.title.set_fontsize(8)
+    fig.colorbar(points, ax=axes[0].tolist(), label="window height z", shrink=0.8)
+    if title:
+        fig.suptitle(title, fontsize=9)
+    return viz.save_figure(fig, path, tight=False)
 
 
 def _episode(run, index: int):
