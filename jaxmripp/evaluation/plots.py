@@ -66,6 +66,7 @@ def discovery_vs_team_size(path, runs: list) -> Path:
 # seen only from low flights between buildings.
 EDGE_STRIP = 0.05
 LOW_WINDOW = 0.25
+MAP_COLUMNS = 6  # panels per row of a missed-window map
 
 
 def missed_windows(run) -> tuple[np.ndarray, dict[str, int]]:
@@ -88,8 +89,12 @@ def missed_map(path, runs: list, title: str = "") -> Path:
     """Top-down maps of the windows never found, pooled over the episodes (the same
     worlds for every run of a sweep), one panel per run (planner and radio range),
     coloured by height; each panel's title counts them by region (`missed_windows`)."""
-    fig, axes = plt.subplots(1, len(runs), figsize=(3.6 * len(runs), 4.0), squeeze=False)
-    for ax, run in zip(axes[0], runs):
+    columns = min(len(runs), MAP_COLUMNS)
+    rows = -(-len(runs) // columns)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 4.0 * rows), squeeze=False)
+    for ax in axes.flat[len(runs):]:
+        ax.set_visible(False)
+    for ax, run in zip(axes.flat, runs):
         centres, n = missed_windows(run)
         points = ax.scatter(centres[:, 0], centres[:, 1], c=centres[:, 2], s=6,
                             cmap="viridis", vmin=0.0, vmax=1.0)
@@ -101,7 +106,7 @@ def missed_map(path, runs: list, title: str = "") -> Path:
                       f"{n['missed']} of {n['windows']} missed: {n['edge']} at the side,\n"
                       f"{n['low']} below z = {LOW_WINDOW:g}"))
         ax.title.set_fontsize(8)
-    fig.colorbar(points, ax=axes[0].tolist(), label="window height z", shrink=0.8)
+    fig.colorbar(points, ax=axes.ravel().tolist(), label="window height z", shrink=0.8)
     if title:
         fig.suptitle(title, fontsize=9)
     return viz.save_figure(fig, path, tight=False)
