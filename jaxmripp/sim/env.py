@@ -184,14 +184,15 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     top = jax.vmap(view.raise_tops_from_cast)(state.building_top, casts)
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
-    finders = jnp.maximum(fresh.sum(axis=0), 1)
+    finders = fresh.sum(axis=0)  # (T,) robots that found each window at this step
+    new_windows = finders > 0
     # reward.team_share pays part of r_u from what the whole team found since the robot's
     # last move, so a robot gains nothing by taking a window a peer would have found.
-    team_found = state.team_found + jnp.any(fresh, axis=0).sum()
-    reward_discovery = (1.0 - dyn.team_share) * (fresh / finders).sum(axis=1) \
+    team_found = state.team_found + new_windows.sum()
+    reward_discovery = (1.0 - dyn.team_share) * (fresh / jnp.maximum(finders, 1)).sum(axis=1) \
         + dyn.team_share * jnp.where(moved, team_found / n, 0.0)
     team_found = jnp.where(moved, 0.0, team_found)
-    discovered = state.discovered | jnp.any(seen, axis=0)
+    discovered = state.discovered | new_windows
 
     utility = jax.vmap(sensing.utility)(casts).astype(jnp.float32) / dyn.utility_norm
     length = jnp.diagonal(state.know)
