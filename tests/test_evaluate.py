@@ -235,4 +235,27 @@ def test_missed_windows_pools_the_episodes_and_counts_by_region():
     # (10, 19, 10) at the y = 1 side, not low. The unused slot is not a window.
     np.testing.assert_allclose(centres, (np.array([[0, 10, 2], [10, 10, 15], [10, 19, 10]])
                                          + 0.5) / 20)
-    assert counts == {"windows": 5, "missed": 3, "edge": 2, "low": 1}
+    # Flat ground (no buildings): the one interior miss faces every way.
+    assert counts == {"windows": 5, "missed": 3, "edge": 2, "low": 1,
+                      "+x": 1, "-x": 1, "+y": 1, "-y": 1}
+
+
+def test_window_facing_follows_the_free_columns_beside_each_window():
+    from jaxmripp.evaluation import plots
+
+    # G = 10: a 3 x 3 building of height 8 at x, y in 4..6, a height-2 neighbour at x = 7,
+    # y in 4..6, and a height-5 building in the corner x, y in 0..1.
+    height = np.zeros((10, 10), int)
+    height[4:7, 4:7] = 8
+    height[7, 4:7] = 2
+    height[0:2, 0:2] = 5
+    voxel = np.array([[4, 5, 2],   # west face only
+                      [6, 6, 3],   # north-east corner above the low neighbour: +x and +y
+                      [5, 4, 7],   # south face only
+                      [6, 5, 1],   # east face, below the neighbour's roof: faces nothing
+                      [6, 5, 3],   # east face above that roof
+                      [0, 1, 4]])  # at the grid's edge: -x is outside, +y free
+    faces = plots.window_facing(height, voxel)
+    labels = [label for label, _, _ in plots.FACINGS]
+    got = [[labels[k] for k in np.flatnonzero(row)] for row in faces]
+    assert got == [["-x"], ["+x", "+y"], ["-y"], [], ["+x"], ["+y"]]

@@ -69,20 +69,46 @@ LOW_WINDOW = 0.25
 MAP_COLUMNS = 6  # panels per row of a missed-window map
 
 
+# The horizontal directions a facade can face, as (label, dx, dy) on the voxel grid.
+FACINGS = (("+x", 1, 0), ("-x", -1, 0), ("+y", 0, 1), ("-y", 0, -1))
+
+
+def window_facing(height: np.ndarray, voxel: np.ndarray) -> np.ndarray:
+    """Column heights (G, G) and window voxels (M, 3) -> (M, len(FACINGS)) bool: the
+    directions each window's facade faces, those whose neighbouring column inside the
+    grid is free at the window's height (a corner window faces two)."""
+    size = height.shape[-1]
+    x, y, z = (np.asarray(voxel)[:, a] for a in range(3))
+    faces = []
+    for _, dx, dy in FACINGS:
+        nx, ny = x + dx, y + dy
+        inside = (nx >= 0) & (nx < size) & (ny >= 0) & (ny < size)
+        beside = height[np.clip(nx, 0, size - 1), np.clip(ny, 0, size - 1)]
+        faces.append(inside & (beside <= z))
+    return np.stack(faces, axis=-1).reshape(len(x), len(FACINGS))
+
+
 def missed_windows(run) -> tuple[np.ndarray, dict[str, int]]:
     """The windows a ShapeRun's episodes never found, pooled over its episodes: their
     centres (M, 3) in the unit cube and counts {"windows", "missed", "edge", "low"}
-    (missed within EDGE_STRIP of the world's side, below LOW_WINDOW)."""
+    (missed within EDGE_STRIP of the world's side, below LOW_WINDOW) plus, per FACINGS
+    label, the missed windows away from the side (the interior) facing that way."""
     s = run.snapshot
     size = s.height.shape[-1]
     valid = np.asarray(s.target_valid, bool)
     missed = valid & (np.asarray(s.found_at) < 0)
-    centres = (np.asarray(s.target_voxel)[missed] + 0.5) / size
+    voxel = np.asarray(s.target_voxel)
+    faces = np.concatenate([window_facing(np.asarray(h), v[m])
+                            for h, v, m in zip(s.height, voxel, missed)])
+    centres = (voxel[missed] + 0.5) / size
     side = np.minimum(np.minimum(centres[:, 0], 1 - centres[:, 0]),
                       np.minimum(centres[:, 1], 1 - centres[:, 1]))
-    return centres, {"windows": int(valid.sum()), "missed": int(missed.sum()),
-                     "edge": int((side < EDGE_STRIP).sum()),
-                     "low": int((centres[:, 2] < LOW_WINDOW).sum())}
+    interior = faces[side >= EDGE_STRIP]
+    counts = {"windows": int(valid.sum()), "missed": int(missed.sum()),
+              "edge": int((side < EDGE_STRIP).sum()),
+              "low": int((centres[:, 2] < LOW_WINDOW).sum())}
+    counts.update({label: int(interior[:, k].sum()) for k, (label, _, _) in enumerate(FACINGS)})
+    return centres, counts
 
 
 def missed_map(path, runs: list, title: str = "") -> Path:
@@ -91,7 +117,7 @@ def missed_map(path, runs: list, title: str = "") -> Path:
     coloured by height; each panel's title counts them by region (`missed_windows`)."""
     columns = min(len(runs), MAP_COLUMNS)
     rows = -(-len(runs) // columns)
-    fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 4.0 * rows), squeeze=False)
+    fig, axes = plt.subplots(rows, columns, figsize=(3.6 * columns, 4.4 * rows), squeeze=False)
     for ax in axes.flat[len(runs):]:
         ax.set_visible(False)
     for ax, run in zip(axes.flat, runs):
@@ -104,7 +130,8 @@ def missed_map(path, runs: list, title: str = "") -> Path:
         ax.set(xlim=(0, 1), ylim=(0, 1), aspect="equal", xlabel="x", ylabel="y",
                title=(f"{run.planner}, rho {run.shape.radio_range:g}\n"
                       f"{n['missed']} of {n['windows']} missed: {n['edge']} at the side,\n"
-                      f"{n['low']} below z = {LOW_WINDOW:g}"))
+                      f"{n['low']} below z = {LOW_WINDOW:g}; inside, facing\n"
+                      + ", ".join(f"{label} {n[label]}" for label, _, _ in FACINGS)))
         ax.title.set_fontsize(8)
     fig.colorbar(points, ax=axes.ravel().tolist(), label="window height z", shrink=0.8)
     if title:
