@@ -91,6 +91,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.layout=spiral", "allowed: one of grid, random"),
         ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
         ("radio.sector_split=rings", "radio.sector_split: got rings; allowed: one of angle, area"),
+        ("radio.map_reach=world", "radio.map_reach: got world; allowed: one of radio, team"),
         ("radio.sector_count=-1", "radio.sector_count: got -1; allowed: a number in [0, 256]"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),

@@ -401,7 +401,8 @@ def sense(planner, position, heading=1, n_seen=0, voxels=None, values=None):
     planner.sense(F32(position), heading, voxels, values, n_seen)
 
 
-def test_export_header_carries_safety_and_other_flight_modes_are_refused(tmp_path):
+def test_export_header_carries_safety_and_other_flight_modes_and_map_reaches_are_refused(
+        tmp_path):
     spec = spec_of()
     assert (spec.flight, spec.takeoff_scan, spec.intents, spec.priority) == (
         CFG.safety.flight, CFG.safety.takeoff_scan, CFG.safety.intents, CFG.safety.priority)
@@ -425,6 +426,15 @@ def test_export_header_carries_safety_and_other_flight_modes_are_refused(tmp_pat
         with pytest.raises(WeightsFormatError, match=f"config.safety.flight is "
                                                      f"'{flight_mode}'.*known_free only"):
             OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
+    head["config"]["safety"]["flight"] = "known_free"
+    head["config"]["radio"]["map_reach"] = "team"
+    (tmp_path / "policy.json").write_text(json.dumps(head))
+    with pytest.raises(WeightsFormatError, match="config.radio.map_reach is not 'radio'"):
+        OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
+    del head["config"]["radio"]["map_reach"]  # absent: radio
+    (tmp_path / "policy.json").write_text(json.dumps(head))
+    assert OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0).spec.share_maps == \
+        CFG.radio.share_maps
     del head["config"]["safety"]
     (tmp_path / "policy.json").write_text(json.dumps(head))
     with pytest.raises(WeightsFormatError, match="config.safety.*re-export"):

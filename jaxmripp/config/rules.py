@@ -14,6 +14,7 @@ from jaxmripp.config.sections import Config
 from jaxmripp.spec import feeding
 from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
 from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
+from jaxmripp.spec.sharing import MAP_REACHES
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -121,6 +122,7 @@ RULES: dict[str, tuple] = {
     "ppo.teacher": _choice("nbv", "nbv_ahead", "oracle"),
     "ppo.teacher_facade": _NONNEG,
     "radio.sector_split": _choice(*SECTOR_SPLITS),
+    "radio.map_reach": _choice(*MAP_REACHES),
     "radio.sector_count": _range(0, 256),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),

@@ -121,6 +121,11 @@ class RuntimeSpec:
                 f"export header: config.safety.flight is {flight!r}; the onboard runtime "
                 "flies known_free only (export a policy trained with safety.flight="
                 "known_free)")
+        if get("radio", "map_reach", str, default="radio") != "radio":
+            raise WeightsFormatError(
+                "export header: config.radio.map_reach is not 'radio'; a radio carries "
+                "maps only within its range (export a policy trained with "
+                "radio.map_reach=radio)")
         if "share_maps" not in section("radio"):
             raise WeightsFormatError("export header: missing field config.radio.share_maps "
                                      "(exported before map sharing, protocol 3; re-export "

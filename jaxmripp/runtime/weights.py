@@ -17,8 +17,9 @@ policy.json
                       gp.*, reward.utility_norm, episode.max_steps, ahead.* (the
                       lookahead input of `jaxmripp.spec.layout`: branches, discount,
                       facade_weight; absent: none); infinities are the
-                      string "inf". The runtime flies safety.flight "known_free" only
-                      and needs radio.share_maps (whether robots exchange maps).
+                      string "inf". The runtime flies safety.flight "known_free" only,
+                      needs radio.share_maps (whether robots exchange maps) and takes
+                      radio.map_reach "radio" only (absent: radio).
     policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
                       central_critic)
     weights           {"file": "policy.npz", "sha256": ..., "arrays": n, "parameters": n}
