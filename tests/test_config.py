@@ -92,6 +92,8 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
         ("radio.sector_split=rings", "radio.sector_split: got rings; allowed: one of angle, area"),
         ("radio.map_reach=world", "radio.map_reach: got world; allowed: one of radio, team"),
+        (["radio.map_reach=team", "radio.share_maps=false"],
+         "radio.map_reach: got team; allowed: radio while radio.share_maps is false"),
         ("radio.sector_count=-1", "radio.sector_count: got -1; allowed: a number in [0, 256]"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),
@@ -107,7 +109,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
 )
 def test_bad_values_give_one_clear_line(override, needle):
     with pytest.raises(ConfigError) as err:
-        cfgmod.load("configs/default.yaml", [override])
+        cfgmod.load("configs/default.yaml", override if isinstance(override, list) else [override])
     message = str(err.value)
     assert needle in message
     assert "\n" not in message

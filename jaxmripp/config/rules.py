@@ -202,6 +202,9 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if r.collision_distance >= r.range:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
+    if r.map_reach != "radio" and not r.share_maps:
+        problems.append(("radio.map_reach", r.map_reach,
+                         "radio while radio.share_maps is false (no maps are merged)"))
     problems += _pad_checks(cfg)
     problems += _sector_checks(cfg)
     if cfg.policy.view_prior > 0 and not cfg.policy.view_features:
