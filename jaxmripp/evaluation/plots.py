@@ -16,6 +16,7 @@ import numpy as np  # noqa: E402
 from matplotlib import animation  # noqa: E402
 
 from jaxmripp.evaluation import viz  # noqa: E402
+from jaxmripp.spec.grid import HEADING_NAMES, HEADING_VECTORS  # noqa: E402
 
 
 def discovery_vs_budget(path, runs: dict, title: str = "", points: int = 41) -> Path:
@@ -69,8 +70,9 @@ LOW_WINDOW = 0.25
 MAP_COLUMNS = 6  # panels per row of a missed-window map
 
 
-# The horizontal directions a facade can face, as (label, dx, dy) on the voxel grid.
-FACINGS = (("+x", 1, 0), ("-x", -1, 0), ("+y", 0, 1), ("-y", 0, -1))
+# The horizontal directions a facade can face, as (label, dx, dy) on the voxel grid: the
+# robots' headings.
+FACINGS = tuple((name, int(v[0]), int(v[1])) for name, v in zip(HEADING_NAMES, HEADING_VECTORS))
 
 
 def window_facing(height: np.ndarray, voxel: np.ndarray) -> np.ndarray:
