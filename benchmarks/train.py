@@ -81,8 +81,7 @@ def main() -> None:
 
     shape = dict(config=args.config, envs=args.envs, robots=cfg.robots.count,
                  candidates=cfg.candidates.count, width=cfg.policy.width,
-                 ff=cfg.policy.width * cfg.policy.ff_mult, world=cfg.world.size,
-                 device=jax.default_backend())
+                 ff=cfg.policy.width * cfg.policy.ff_mult, world=cfg.world.size)
     emit("train.rollout_agent_steps_per_s", rollout_rate, "agent-steps/s", **shape)
     emit("train.policy_only_agent_steps_per_s", policy_rate, "agent-steps/s", **shape)
     emit("train.rollout_vs_policy_ratio", ratio, "ratio", **shape,

@@ -5,6 +5,7 @@ test."""
 
 import json
 import math
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -44,6 +45,27 @@ def test_benchmark_prints_its_figures(script):
         if line.startswith("{"):
             record = json.loads(line)
             figures[record["name"]] = record["value"]
+            assert record["device"], record  # every figure names its machine
     for name in names:
         assert name in figures, (name, sorted(figures))
         assert math.isfinite(figures[name]), (name, figures[name])
+
+
+def test_cpu_family_keeps_vendor_and_family_only():
+    """The machine named beside each figure, from /proc/cpuinfo model names seen on the
+    machines the README's figures come from (run apart: importing the benchmarks' helpers
+    changes the process's malloc settings)."""
+    code = (
+        "import common\n"
+        "print(common.cpu_family('Intel(R) Xeon(R) Processor'))\n"
+        "print(common.cpu_family('AMD EPYC 7R13 Processor'))\n"
+        "print(common.cpu_family('Intel(R) Core(TM) i7-8700 CPU @ 3.20GHz'))\n"
+        "print(repr(common.cpu_family('')))\n"
+        "print(common.machine())\n")
+    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT / "benchmarks",
+                          capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert done.returncode == 0, done.stderr[-3000:]
+    lines = done.stdout.splitlines()
+    assert lines[:4] == ["Intel Xeon", "AMD EPYC", "Intel Core", "''"]
+    assert lines[4].startswith(f"{os.cpu_count()}-core"), lines[4]
