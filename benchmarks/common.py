@@ -9,8 +9,6 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib
-import json
-import os
 import statistics
 import sys
 import time
@@ -18,6 +16,7 @@ from typing import Any, Callable
 
 import jax
 
+import figures
 from jaxmripp import allocator
 from jaxmripp.sim.xla_options import simulation_jit
 
@@ -27,42 +26,27 @@ allocator.keep_freed_memory()
 @functools.cache
 def machine() -> str:
     """What the figures were measured on: the accelerator's kind when JAX runs on one
-    (e.g. "NVIDIA H100"), else the host CPU as "<cores>-core <vendor> <family>" (e.g.
-    "2-core Intel Xeon"), read from /proc/cpuinfo where there is one."""
+    (e.g. "NVIDIA H100"), else the host CPU (`figures.host_cpu`)."""
     device = jax.devices()[0]
-    if device.platform != "cpu":
-        return device.device_kind
-    model = ""
-    try:
-        with open("/proc/cpuinfo") as cpuinfo:
-            model = next((line.split(":", 1)[1] for line in cpuinfo
-                          if line.startswith("model name")), "")
-    except OSError:
-        pass
-    return f"{os.cpu_count()}-core {cpu_family(model)}".rstrip()
-
-
-def cpu_family(model: str) -> str:
-    """A CPU's vendor and family from its model name, without trademarks, clock and core
-    count: "Intel(R) Xeon(R) Processor" -> "Intel Xeon", "AMD EPYC 9R14 96-Core Processor"
-    -> "AMD EPYC"; the first two words of anything else."""
-    words = [w for w in model.replace("(R)", " ").replace("(TM)", " ").split()
-             if w not in ("CPU", "Processor", "@")]
-    return " ".join(words[:2])
+    return device.device_kind if device.platform != "cpu" else figures.host_cpu()
 
 
 def emit(name: str, value: float, unit: str, **extra: Any) -> None:
     """Prints one benchmark figure as a JSON line, naming the machine it was measured on."""
-    print(json.dumps({"name": name, "value": round(float(value), 4), "unit": unit, **extra,
-                      "device": machine()}))
+    print(figures.line(name, round(float(value), 4), unit, device=machine(), **extra))
     sys.stdout.flush()
 
 
 def emit_p(name: str, p: float) -> None:
     """Prints a p-value as a JSON line, to 3 significant digits (emit's rounding would
     print small ones as 0)."""
-    print(json.dumps({"name": name, "value": float(f"{p:.3g}"), "unit": "p",
-                      "device": machine()}))
+    print(figures.line(name, float(f"{p:.3g}"), "p", device=machine()))
+    sys.stdout.flush()
+
+
+def emit_text(name: str, text: str) -> None:
+    """Prints a line whose value is a string (a planner's name, a command)."""
+    print(figures.line(name, text, device=machine()))
     sys.stdout.flush()
 
 

@@ -38,7 +38,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit, emit_p  # noqa: E402
+from common import emit, emit_p, emit_text  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
 PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
@@ -71,6 +71,13 @@ def main(argv=None) -> int:
     except cfgmod.ConfigError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2
+    missing = [name for name in planners if name not in cfg.eval.planners]
+    missing += [f"rho = {rho:g}" for rho in (math.inf, 0.1) if rho not in cfg.eval.radio_ranges]
+    if missing:
+        print(f"error: --set: the figures need {', '.join(missing)} in the sweep "
+              f"(eval.planners must include {', '.join(planners)}; eval.radio_ranges "
+              f"inf and 0.1)", file=sys.stderr)
+        return 2
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
@@ -84,7 +91,7 @@ def main(argv=None) -> int:
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                              time_planning=False, keep_pictures=False)
     command = "python benchmarks/quality.py " + " ".join(argv or sys.argv[1:])
-    print(json.dumps({"name": "quality.command", "value": command}))  # for jaxmripp.ship
+    emit_text("quality.command", command)  # for jaxmripp.ship
     if args.out:
         outputs.write_outputs(result, args.out, cfg, render=True, gif=False, command=command)
     found = {(r.planner, r.shape.radio_range): r.discovered for r in result.runs}
@@ -93,7 +100,7 @@ def main(argv=None) -> int:
         emit(f"quality.pct.{name}.rho{rho:g}", value, "%")
     best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
     emit("quality.best_baseline_pct", pct[(best, math.inf)], "%")
-    print(json.dumps({"name": "quality.best_baseline", "value": best}))
+    emit_text("quality.best_baseline", best)
     emit("quality.oracle_pct", pct[("oracle", math.inf)], "%")
     episodes = sum(len(r.discovered) for r in result.runs)
     collisions = sum(int(r.safety[key].sum()) for r in result.runs

@@ -39,6 +39,9 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import figures  # noqa: E402
 
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
 from jaxmripp.runtime import ROBOT_STATE, NumpyPolicy, OnboardPlanner  # noqa: E402
@@ -51,8 +54,9 @@ N, BUDGET, MIN_DECISIONS, WARMUP_EPISODES = 3, 10.0, 600, 1
 
 
 def emit(name: str, value: float, unit: str, **extra) -> None:
-    """One figure as a JSON line (benchmarks/common.emit's format, without importing jax)."""
-    print(json.dumps({"name": name, "value": round(float(value), 4), "unit": unit, **extra}))
+    """One figure as a JSON line, as benchmarks/common.emit prints it, without importing
+    jax (the runtime runs on the host CPU)."""
+    print(figures.line(name, round(float(value), 4), unit, device=figures.host_cpu(), **extra))
     sys.stdout.flush()
 
 

@@ -3,6 +3,7 @@ each exits cleanly and prints the figures it promises as finite JSON lines. They
 the simulator directly, so a changed signature there breaks them without failing any other
 test."""
 
+import importlib.util
 import json
 import math
 import os
@@ -51,21 +52,33 @@ def test_benchmark_prints_its_figures(script):
         assert math.isfinite(figures[name]), (name, figures[name])
 
 
-def test_cpu_family_keeps_vendor_and_family_only():
-    """The machine named beside each figure, from /proc/cpuinfo model names seen on the
-    machines the README's figures come from (run apart: importing the benchmarks' helpers
-    changes the process's malloc settings)."""
-    code = (
-        "import common\n"
-        "print(common.cpu_family('Intel(R) Xeon(R) Processor'))\n"
-        "print(common.cpu_family('AMD EPYC 7R13 Processor'))\n"
-        "print(common.cpu_family('Intel(R) Core(TM) i7-8700 CPU @ 3.20GHz'))\n"
-        "print(repr(common.cpu_family('')))\n"
-        "print(common.machine())\n")
-    done = subprocess.run([sys.executable, "-c", code], cwd=ROOT / "benchmarks",
-                          capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "JAX_PLATFORMS": "cpu"})
-    assert done.returncode == 0, done.stderr[-3000:]
-    lines = done.stdout.splitlines()
-    assert lines[:4] == ["Intel Xeon", "AMD EPYC", "Intel Core", "''"]
-    assert lines[4].startswith(f"{os.cpu_count()}-core"), lines[4]
+def test_each_line_names_the_machine_by_vendor_and_family():
+    """The machine each figure names, from /proc/cpuinfo model names of the kinds the
+    README's figures come from; `benchmarks/figures.py` imports only the standard library,
+    so it is loaded here directly."""
+    spec = importlib.util.spec_from_file_location("figures", ROOT / "benchmarks" / "figures.py")
+    figures = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(figures)
+    assert figures.cpu_family("Intel(R) Xeon(R) Processor") == "Intel Xeon"
+    assert figures.cpu_family("AMD EPYC 7R13 Processor") == "AMD EPYC"
+    assert figures.cpu_family("Intel(R) Core(TM) i7-8700 CPU @ 3.20GHz") == "Intel Core"
+    assert figures.cpu_family("") == ""
+    assert figures.host_cpu().startswith(f"{os.cpu_count()}-core")
+    record = json.loads(figures.line("x.rate", 1.5, "1/s", device="2-core Intel Xeon", envs=4))
+    assert record == {"name": "x.rate", "value": 1.5, "unit": "1/s", "envs": 4,
+                      "device": "2-core Intel Xeon"}
+    assert "unit" not in json.loads(figures.line("x.best", "nbv", device="d"))
+
+
+def test_quality_refuses_a_sweep_without_the_planners_of_its_figures():
+    """`quality.py --set` may change the protocol's settings but not drop a planner or a
+    radio range its figures are defined over: one line naming what is missing, exit 2,
+    before anything is compiled."""
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"),
+                           "--worlds", "1", "--set", "eval.planners=[policy,nbv,oracle]"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-3000:]
+    error = done.stderr.strip().splitlines()
+    assert len(error) == 1 and error[0].startswith("error: --set:"), error
+    assert "nbv_ahead, nbv_team, coordinated, greedy, mcts, rig, random" in error[0]
+    assert done.stdout == ""
