@@ -33,8 +33,7 @@ def machine() -> str:
 
 def emit(name: str, value: float, unit: str, **extra: Any) -> None:
     """Prints one benchmark figure as a JSON line, naming the machine it was measured on."""
-    print(figures.line(name, round(float(value), 4), unit, device=machine(), **extra))
-    sys.stdout.flush()
+    figures.emit(name, value, unit, device=machine(), **extra)
 
 
 def emit_p(name: str, p: float) -> None:

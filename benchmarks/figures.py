@@ -6,8 +6,10 @@ lines as the scripts that go through `common.emit`.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
+import sys
 from typing import Any
 
 
@@ -19,6 +21,13 @@ def line(name: str, value: Any, unit: str | None = None, *, device: str, **extra
     return json.dumps({**record, **extra, "device": device})
 
 
+def emit(name: str, value: float, unit: str, *, device: str, **extra: Any) -> None:
+    """Prints one figure (rounded to 4 decimals) as a JSON line, flushed at once."""
+    print(line(name, round(float(value), 4), unit, device=device, **extra))
+    sys.stdout.flush()
+
+
+@functools.cache
 def host_cpu() -> str:
     """The host CPU as "<cores>-core <vendor> <family>" (e.g. "2-core Intel Xeon"), the
     family read from /proc/cpuinfo where there is one."""

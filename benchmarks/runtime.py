@@ -56,8 +56,7 @@ N, BUDGET, MIN_DECISIONS, WARMUP_EPISODES = 3, 10.0, 600, 1
 def emit(name: str, value: float, unit: str, **extra) -> None:
     """One figure as a JSON line, as benchmarks/common.emit prints it, without importing
     jax (the runtime runs on the host CPU)."""
-    print(figures.line(name, round(float(value), 4), unit, device=figures.host_cpu(), **extra))
-    sys.stdout.flush()
+    figures.emit(name, value, unit, device=figures.host_cpu(), **extra)
 
 
 def random_weights(cfg: Config, n_features: int, rng) -> dict[str, np.ndarray]:
