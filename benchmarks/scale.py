@@ -30,9 +30,10 @@ cell. Figures: scale.grid.<planner>.<exchange>.g<G>.n<N> (mean % found, std, 95%
 half-width) and, with --figure, % found against N per world size with std bands. Every
 cell's worlds follow from eval.seed and the world's index alone, so the grid can be split
 over runs (--world-sizes, --grid-teams, --exchanges, --global-planners, --range-planners),
-in parallel on one GPU too; --collected FILE prints the grid's tables from the lines
-collected in FILE (mean % found, std over the worlds, and per cell the policy with relay
-over the best planner with global communication, with their Welch p) and draws --figure.
+in parallel on one GPU too; --collected FILE [FILE ...] prints the grid's tables from the
+lines collected in the files (mean % found, std over the worlds, and per cell the policy
+with relay over the best planner with global communication, with their Welch p; last, those
+ratios and single hop's for every world size in one table) and draws --figure.
 
 With --ranges R1,R2,... (instead of the timing), how far the radio must reach: the --eval
 cell (the largest team of --teams in the --size world) with the --range-planners with single
@@ -49,7 +50,7 @@ Usage (from the repository root):
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
         [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
-    python benchmarks/scale.py --collected grid.jsonl [--figure docs/scale_grid.png]
+    python benchmarks/scale.py --collected grid.jsonl [more.jsonl ...] [--figure docs/scale_grid.png]
     python benchmarks/scale.py --ranges 0.12,0.15,0.18,0.25 [--worlds W] [--policy DIR]
         [--figure docs/scale_radio_range.png] [--global-planners policy,nbv]
 """
@@ -115,17 +116,23 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--range-planners", default=",".join(RANGE_PLANNERS),
                         help="--grid: the planners evaluated with single hop and relay at "
                              "the cell's radio range")
-    parser.add_argument("--collected", type=Path, default=None,
+    parser.add_argument("--collected", type=Path, nargs="+", default=None,
                         help="print the tables (and draw --figure) from the scale.grid.* "
-                             "JSON lines of this file, collected from --grid runs")
+                             "JSON lines of these files, collected from --grid runs (a "
+                             "cell in several keeps the last file's figure)")
     return parser
 
 
 def _run(args) -> None:
     if args.collected is not None:
-        grid = read_grid(args.collected) if args.collected.is_file() else {}
+        missing = [str(path) for path in args.collected if not path.is_file()]
+        if missing:
+            raise UsageError(f"--collected {' '.join(missing)}: no such file")
+        grid = {}
+        for path in args.collected:
+            grid.update(read_grid(path))
         if not grid:
-            raise UsageError(f"--collected {args.collected}: no file with "
+            raise UsageError(f"--collected {' '.join(map(str, args.collected))}: no "
                              "scale.grid.<planner>.<exchange>.g<G>.n<N> lines")
         sizes = sorted({size for _, _, size, _ in grid})
         print(grid_tables(grid, sizes))

@@ -91,28 +91,40 @@ def pairs_in(grid: dict) -> list[tuple[str, str]]:
     return [pair for pair in PAIRS if any(key[:2] == pair for key in grid)]
 
 
+def over_best_global(grid: dict, exchange: str, size: int, n: int):
+    """(ratio, Welch p) of the policy with `exchange` over the best planner with global
+    communication in the cell (size, n), the p from the means and stds; None where either
+    figure is missing or rests on fewer than 2 worlds."""
+    from scipy import stats  # noqa: PLC0415
+
+    mine = grid.get(("policy", exchange, size, n))
+    best = max((v for k, v in grid.items() if k[1:] == ("global", size, n)),
+               key=lambda v: v[0], default=None)
+    if mine is None or best is None or min(mine[2], best[2]) < 2:
+        return None
+    return mine[0] / best[0], stats.ttest_ind_from_stats(*mine, *best, equal_var=False).pvalue
+
+
 def grid_tables(grid: dict, sizes: list[int]) -> str:
     """One markdown table per world size: planner-exchange rows, team-size columns, mean %
     found (std; "-" where a cell has no figure), then the policy with relay over the best
-    planner with global communication, with the Welch p of the two (from means and stds)."""
-    from scipy import stats  # noqa: PLC0415
-
+    planner with global communication, with the Welch p of the two; last, one table of
+    those ratios (and single hop's) over every world size."""
     rows = pairs_in(grid)
 
-    def relay_vs_best_global(size: int, n: int) -> str:
-        relay = grid.get(("policy", "relay", size, n))
-        best = max((v for k, v in grid.items() if k[1:] == ("global", size, n)),
-                   key=lambda v: v[0], default=None)
-        if relay is None or best is None or min(relay[2], best[2]) < 2:
+    def teams_of(size: int) -> list[int]:
+        return sorted({n for _, _, g, n in grid if g == size})
+
+    def ratio_cell(exchange: str, size: int, n: int, with_p: bool) -> str:
+        ratio = over_best_global(grid, exchange, size, n)
+        if ratio is None:
             return "-"
-        p = stats.ttest_ind_from_stats(*relay, *best, equal_var=False).pvalue
-        return f"{relay[0] / best[0]:.3f} (p {p:.1g})"
+        return f"{ratio[0]:.3f} (p {ratio[1]:.1g})" if with_p else f"{ratio[0]:.3f}"
 
     text = []
     for size in sizes:
-        teams = sorted({n for _, _, g, n in grid if g == size})
-        ratio = round((size / config.REFERENCE_SIZE) ** 3)
-        text += [f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]}):", "",
+        teams = teams_of(size)
+        text += [f"{_world_name(size)}:", "",
                  "| planner, exchange | " + " | ".join(f"N = {n}" for n in teams) + " |",
                  "|---|" + "---|" * len(teams)]
         for planner, exchange in rows:
@@ -120,8 +132,21 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
             text.append(f"| {planner}, {exchange.replace('_', ' ')} | " + " | ".join(
                 "-" if c is None else f"{c[0]:.2f} ({c[1]:.2f})" for c in cells) + " |")
         text += ["| relay / best global | " + " | ".join(
-            relay_vs_best_global(size, n) for n in teams) + " |", ""]
-    return "\n".join(text)
+            ratio_cell("relay", size, n, True) for n in teams) + " |", ""]
+    teams = sorted({n for _, _, _, n in grid})
+    text += ["The policy over the best planner with global communication:", "",
+             "| world, exchange | " + " | ".join(f"N = {n}" for n in teams) + " |",
+             "|---|" + "---|" * len(teams)]
+    for size in sizes:
+        for exchange in ("single_hop", "relay"):
+            text.append(f"| {_world_name(size)}, {exchange.replace('_', ' ')} | " + " | ".join(
+                ratio_cell(exchange, size, n, False) for n in teams) + " |")
+    return "\n".join(text + [""])
+
+
+def _world_name(size: int) -> str:
+    ratio = round((size / config.REFERENCE_SIZE) ** 3)
+    return f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})"
 
 
 def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
@@ -133,8 +158,7 @@ def plot_grid(grid: dict, sizes: list[int], path: Path) -> None:
             ns = sorted(n for p, e, g, n in grid if (p, e, g) == (planner, exchange, size))
             _band(ax, ns, [grid[planner, exchange, size, n][0] for n in ns],
                   [grid[planner, exchange, size, n][1] for n in ns], planner, exchange)
-        ratio = round((size / config.REFERENCE_SIZE) ** 3)
-        ax.set(title=f"{ratio}x world (G = {size}, rho = {PAPER_RADIO[size]})",
+        ax.set(title=_world_name(size),
                xlabel="robots N", ylabel="% windows found", ylim=(0, 100))
     _save(fig, axes, path)
 

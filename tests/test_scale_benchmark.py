@@ -59,7 +59,43 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
     p = 2 * stats.t.sf(abs(t), df)
     assert out[g125 + 8] == f"| relay / best global | {68.96 / 74.21:.3f} (p {p:.1g}) | - |"
     assert out[g75 + 8] == "| relay / best global | - |"
+    # the ratios of every world in one table, over the team sizes of any world
+    summary = out.index("The policy over the best planner with global communication:")
+    assert out[summary + 2] == "| world, exchange | N = 16 | N = 32 | N = 64 |"
+    assert out[summary + 4:summary + 8] == [
+        "| 3x world (G = 75, rho = 0.2), single hop | - | - | - |",
+        "| 3x world (G = 75, rho = 0.2), relay | - | - | - |",
+        "| 16x world (G = 125, rho = 0.12), single hop | - | - | - |",
+        f"| 16x world (G = 125, rho = 0.12), relay | {68.96 / 74.21:.3f} | - | - |"]
     assert figure.stat().st_size > 0
+
+
+def test_tables_from_several_files_keep_the_last_file_of_a_cell(tmp_path):
+    def write(name, *cells):
+        path = tmp_path / name
+        path.write_text("".join(json.dumps({"name": f"scale.grid.{c}", "value": v, "std": 1.0,
+                                            "worlds": 10}) + "\n" for c, v in cells))
+        return path
+
+    first = write("a.jsonl", ("policy.relay.g100.n16", 50.0), ("nbv.global.g100.n16", 80.0),
+                  ("policy.single_hop.g100.n16", 40.0))
+    second = write("b.jsonl", ("policy.relay.g100.n16", 60.0), ("nbv.global.g75.n32", 90.0),
+                   ("policy.single_hop.g75.n32", 45.0))
+    done = subprocess.run([sys.executable, str(SCRIPT), "--collected", str(first), str(second)],
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    out = done.stdout.splitlines()
+    summary = out.index("The policy over the best planner with global communication:")
+    assert out[summary + 4:summary + 8] == [
+        "| 3x world (G = 75, rho = 0.2), single hop | - | 0.500 |",
+        "| 3x world (G = 75, rho = 0.2), relay | - | - |",
+        "| 8x world (G = 100, rho = 0.15), single hop | 0.500 | - |",
+        "| 8x world (G = 100, rho = 0.15), relay | 0.750 | - |"]
+    missing = subprocess.run([sys.executable, str(SCRIPT), "--collected", str(first),
+                              str(tmp_path / "none.jsonl")],
+                             capture_output=True, text=True, timeout=120)
+    assert missing.returncode == 2
+    assert f"--collected {tmp_path / 'none.jsonl'}: no such file" in missing.stderr
 
 
 def test_no_grid_lines_is_an_error(tmp_path):
@@ -67,7 +103,7 @@ def test_no_grid_lines_is_an_error(tmp_path):
     path.write_text(json.dumps({"name": "scale.peak_rss_mb", "value": 1.0}) + "\n")
     done = collected(path)
     assert done.returncode == 2
-    assert "no file with scale.grid.<planner>.<exchange>.g<G>.n<N> lines" in done.stderr
+    assert f"--collected {path}: no scale.grid.<planner>.<exchange>.g<G>.n<N> lines" in done.stderr
 
 
 def test_a_planner_outside_the_allowed_is_an_error():
