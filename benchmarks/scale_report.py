@@ -112,9 +112,6 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
     those ratios (and single hop's) over every world size."""
     rows = pairs_in(grid)
 
-    def teams_of(size: int) -> list[int]:
-        return sorted({n for _, _, g, n in grid if g == size})
-
     def ratio_cell(exchange: str, size: int, n: int, with_p: bool) -> str:
         ratio = over_best_global(grid, exchange, size, n)
         if ratio is None:
@@ -123,7 +120,7 @@ def grid_tables(grid: dict, sizes: list[int]) -> str:
 
     text = []
     for size in sizes:
-        teams = teams_of(size)
+        teams = sorted({n for _, _, g, n in grid if g == size})
         text += [f"{_world_name(size)}:", "",
                  "| planner, exchange | " + " | ".join(f"N = {n}" for n in teams) + " |",
                  "|---|" + "---|" * len(teams)]
