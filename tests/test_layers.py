@@ -3,8 +3,9 @@ evaluation.
 
 Top-level modules (pipeline, export, demo, allocator) sit above every package; the runtime
 imports only itself and the spec; `flight` (physics in the loop) flies the runtime in the
-simulator's cities, so it may import the runtime and the layers up to sim, and nothing
-imports it but top-level modules.
+simulator's cities, so it may import the runtime and the layers up to sim; `marl` (the
+JaxMARL adapter) sits on the layers up to learn, beside evaluation. Nothing imports
+`flight` or `marl` but top-level modules.
 """
 
 from __future__ import annotations
@@ -36,6 +37,8 @@ def allowed(layer: str) -> set[str]:
         return {"runtime", "spec"}
     if layer == "flight":
         return {"flight", "runtime", *LAYERS[:LAYERS.index("sim") + 1]}
+    if layer == "marl":
+        return {"marl", *LAYERS[:LAYERS.index("learn") + 1]}
     return set(LAYERS[:LAYERS.index(layer) + 1])
 
 
@@ -51,7 +54,7 @@ def violations(root: Path) -> list[str]:
 
 
 def test_every_import_points_down():
-    assert set(LAYERS) | {"runtime", "flight"} == {p.name for p in PACKAGE.iterdir()
+    assert set(LAYERS) | {"runtime", "flight", "marl"} == {p.name for p in PACKAGE.iterdir()
                                          if p.is_dir() and (p / "__init__.py").exists()}
     assert violations(PACKAGE) == []
 
@@ -62,5 +65,12 @@ def test_checker_catches_an_upward_import(tmp_path):
         "def f():\n    from jaxmripp.evaluation import baselines\n")
     (tmp_path / "runtime").mkdir()
     (tmp_path / "runtime" / "x.py").write_text("from jaxmripp.sim import gp\n")
-    assert violations(tmp_path) == ["runtime/x.py imports jaxmripp.sim",
+    (tmp_path / "marl").mkdir()
+    (tmp_path / "marl" / "env.py").write_text(
+        "from jaxmripp.learn import ppo\nfrom jaxmripp.evaluation import rig\n")
+    (tmp_path / "learn").mkdir()
+    (tmp_path / "learn" / "x.py").write_text("import jaxmripp.marl.env\n")
+    assert violations(tmp_path) == ["learn/x.py imports jaxmripp.marl",
+                                    "marl/env.py imports jaxmripp.evaluation",
+                                    "runtime/x.py imports jaxmripp.sim",
                                     "sim/env.py imports jaxmripp.evaluation"]
