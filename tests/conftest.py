@@ -45,7 +45,7 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
 # workers in collection order (--no-loadscope-reorder: xdist would otherwise start with the
 # files of most tests), so a long file collected last would run alone at the end.
 LONGEST_FIRST = ("test_train.py", "test_env.py", "test_evaluate.py", "test_runtime_episode.py",
-                 "test_runtime_parity.py", "test_pipeline.py", "test_export.py", "test_rig.py")
+                 "test_runtime_parity.py", "test_pipeline.py", "test_export.py", "test_marl.py", "test_rig.py")
 
 
 def pytest_collection_modifyitems(config, items):
