@@ -11,8 +11,10 @@ flight.policy_vs_random, flight.crashes (all planners, all missions), flight.dec
 (median per robot decision, policy), flight.sense_ms (median depth image -> map update),
 flight.sim_realtime_factor (simulated seconds per wall second, all missions),
 flight.max_speed, flight.track_error_m (farthest from a line of flight),
-flight.late_arrivals and flight.false_free_voxels (building voxels some map held FREE; 0
-by the depth rule).
+flight.late_arrivals, flight.false_free_voxels (building voxels some map held FREE; 0
+by the depth rule), flight.refused_messages (the drones fly a signed radio, a team key
+from each city's seed: none refused in an honest team) and flight.map_conflicts (voxels
+of merged map deltas one drone held FREE and another OCCUPIED; OCCUPIED is kept).
 """
 
 from __future__ import annotations
@@ -88,6 +90,8 @@ def main(argv=None) -> None:
     emit("flight.track_error_m", max(r.track_error for r in every), "m")
     emit("flight.late_arrivals", sum(r.late_arrivals for r in every), "count")
     emit("flight.false_free_voxels", sum(r.false_free for r in every), "count")
+    emit("flight.refused_messages", sum(r.refused_messages for r in every), "count")
+    emit("flight.map_conflicts", sum(r.map_conflicts for r in every), "count")
 
 
 if __name__ == "__main__":

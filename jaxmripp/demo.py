@@ -14,6 +14,13 @@ lower-priority robot whose flight would come within d_c of another's holds); the
 then flies each robot along its line of flight, stopping before a building (the
 traversal rule, as the env does), and prints the progress with the mean size of the
 round's map messages. It ends when every robot hovers or after the episode's step limit.
+
+The team's radio is authenticated (`jaxmripp.runtime.auth`): every robot holds the same
+team key and signs every message; the summary gives the mean size of each kind of message
+and the messages refused. The key is derived from --seed (`team_key(seed)`), so a run
+repeats byte for byte; it is no secret, which a simulation does not need. A real team
+draws its key once from the operating system (`jaxmripp.runtime.team_key()`) and loads it
+onto every robot. --unsigned flies without a key (messages carry no tag).
 """
 
 from __future__ import annotations
@@ -29,10 +36,32 @@ import numpy as np
 
 from jaxmripp.flight.team import exchange, pads
 from jaxmripp.runtime import weights as fmt
+from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
+
+KINDS = ("waypoints", "map", "intents")  # the round's three broadcasts
+
+
+@dataclasses.dataclass
+class TeamRun:
+    """What `main` flew: the world, every robot's positions round by round, the windows
+    found, the planners as they ended and the bytes of every message sent, by kind."""
+
+    percent: float
+    steps: int
+    world: object  # the simulator's world (`jaxmripp.sim.world.World`)
+    sensor: object  # its camera (`jaxmripp.config.SensorConfig`)
+    height: np.ndarray  # (G, G) building heights in voxels
+    valid: np.ndarray  # (T,) bool real windows
+    found: np.ndarray  # (T,) bool seen by some robot
+    path: list[np.ndarray]  # per round, (N, 3) float32 positions where the robots sensed
+    headings: list[np.ndarray]  # per round, (N,) their headings
+    blocked_moves: int  # flights a building stopped (none for known-free flights)
+    planners: list[OnboardPlanner]
+    message_bytes: dict[str, list[int]]  # kind -> sizes of the messages sent
 
 
 def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell_hi: float):
@@ -71,7 +100,9 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--escape", action="store_true",
                         help="robots that met out of radio range may fly apart "
                              "(safety.escape; default: the export's setting)")
-    parser.add_argument("--quiet", action="store_true", help="only the final line")
+    parser.add_argument("--unsigned", action="store_true",
+                        help="fly without a team key: messages are neither signed nor checked")
+    parser.add_argument("--quiet", action="store_true", help="only the final lines")
     args = parser.parse_args(argv)
 
     import jax  # the simulated world only; planners below are NumPy
@@ -100,10 +131,12 @@ def main(argv: list[str] | None = None) -> float:
     steps = max(spec.max_steps, int(math.ceil(per_robot / spec.shell[0])) + 4)
     kappa = cfg.eval.greedy_kappa if args.kappa is None else args.kappa
     lam = cfg.eval.greedy_lambda if args.lam is None else args.lam
+    key = None if args.unsigned else team_key(args.seed)
     try:
         planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
                                    lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
-                                   sectors=args.sectors, sector_count=args.sector_count)
+                                   sectors=args.sectors, sector_count=args.sector_count,
+                                   team_key=key)
                     for i in range(n)]
     except ValueError as err:
         print(f"error: {err}", file=sys.stderr)
@@ -125,7 +158,13 @@ def main(argv: list[str] | None = None) -> float:
     if not args.quiet:
         print(f"{n} robots, {mode} planners, G = {size}, {int(valid.sum())} windows, "
               f"B = {args.budget:g}, rho = {spec.radio_range:g}, seed {args.seed}")
-    decide_seconds, map_bytes = [], []
+    decide_seconds, map_bytes, path, headings, blocked_moves = [], [], [], [], 0
+    sent = {kind: [] for kind in KINDS}
+
+    def broadcast(kind, outbox, receive):
+        sent[kind].extend(len(data) for data in outbox)
+        exchange(outbox, position, spec.radio_range, receive)
+
     for step in range(steps + 1):
         # The take-off scan: the first sense sees the other three headings as well.
         turns = range(N_HEADINGS) if step == 0 and spec.takeoff_scan else (0,)
@@ -135,21 +174,22 @@ def main(argv: list[str] | None = None) -> float:
         values = np.concatenate([np.asarray(c.values) for c in casts], axis=1)
         seen = np.asarray(casts[-1].seen)
         found |= np.any([np.asarray(c.seen).any(axis=0) for c in casts], axis=0)
+        path.append(position.copy())
+        headings.append(heading.copy())
         start = time.perf_counter()
         for i, planner in enumerate(planners):
             planner.sense(position[i], int(heading[i]), voxels[i], values[i],
                           int(seen[i].sum()), blocked=bool(blocked[i]))
-        exchange([planner.message() for planner in planners], position, spec.radio_range,
-                 lambda i, data: planners[i].receive(data))
+        broadcast("waypoints", [planner.message() for planner in planners],
+                  lambda i, data: planners[i].receive(data))
         if spec.share_maps:
             outbox = [planner.map_message() for planner in planners]
-            exchange(outbox, position, spec.radio_range,
-                     lambda i, data: planners[i].receive_map(data))
+            broadcast("map", outbox, lambda i, data: planners[i].receive_map(data))
             map_bytes.append([len(data) for data in outbox])
         for planner in planners:
             planner.decide()
-        exchange([planner.intent_message() for planner in planners], position,
-                 spec.radio_range, lambda i, data: planners[i].receive_intent(data))
+        broadcast("intents", [planner.intent_message() for planner in planners],
+                  lambda i, data: planners[i].receive_intent(data))
         decisions = [planner.resolve() for planner in planners]
         decide_seconds.append((time.perf_counter() - start) / n)
         percent = 100.0 * found.sum() / max(valid.sum(), 1)
@@ -171,6 +211,7 @@ def main(argv: list[str] | None = None) -> float:
             if not d.hover:
                 position[i], blocked[i] = fly(height, position[i], d.position, size, spec.shell[1])
                 heading[i] = d.heading
+                blocked_moves += int(blocked[i])
     percent = 100.0 * found.sum() / max(valid.sum(), 1)
     print(f"found {percent:.1f}% of {int(valid.sum())} windows in {step} steps "
           f"(median {1e3 * float(np.median(decide_seconds)):.2f} ms per robot decision, "
@@ -180,7 +221,12 @@ def main(argv: list[str] | None = None) -> float:
         later = sizes[1:].mean() if len(sizes) > 1 else 0.0
         print(f"map messages: mean {sizes.mean():.0f} bytes per robot per step (first step "
               f"{sizes[0].mean():.0f}, later steps {later:.0f}, largest {sizes.max():.0f})")
-    return percent
+    refused = sum(sum(p.rejected_messages.values()) for p in planners)
+    means = ", ".join(f"{kind} {np.mean(sent[kind]):.0f}" for kind in KINDS if sent[kind])
+    print(f"radio: {'unsigned' if key is None else 'signed with the team key'}; mean bytes "
+          f"per message: {means}; {refused} refused")
+    return TeamRun(percent, step, world, cfg.sensor, height, valid, found, path, headings,
+                   blocked_moves, planners, sent)
 
 
 if __name__ == "__main__":

@@ -116,7 +116,9 @@ def sense_all(sim, state, planners, blocked, t):
 
 def share_maps(state, planners, contact, t, traffic=None):
     """With `radio.share_maps` every robot sends its map deltas along the contacts and
-    merges those sent to it; then maps and building tops must be the env's (its merge).
+    merges those sent to it; then maps and building tops must be the env's (its merge),
+    and no delta ever disagreed with its receiver's map (maps true to the world: the
+    runtime's rule that OCCUPIED is never freed changes nothing in honest runs).
     traffic, if given, gets (round, sender, receiver, delta voxels, voxels the sender
     knows) per delivered delta."""
     if planners[0].spec.share_maps:
@@ -127,6 +129,7 @@ def share_maps(state, planners, contact, t, traffic=None):
             if traffic is not None:
                 traffic.append((t, j, i, len(message.delta_for(i).voxels), known[j]))
     for i, planner in enumerate(planners):
+        assert planner.sharing.conflicts == 0, f"step {t} robot {i}: maps disagreed"
         np.testing.assert_array_equal(planner.map.grid, np.asarray(state.occupancy[i]),
                                       err_msg=f"step {t} robot {i}: maps differ")
         np.testing.assert_array_equal(planner.map.top, np.asarray(state.building_top[i]),

@@ -9,6 +9,10 @@ controller (the physics engine integrates all of them at once) and turns to the 
 heading; the round ends when all have arrived. The mission ends when every drone hovers,
 or after the round limit.
 
+The team's radio is signed: every drone holds the team key, derived from the mission's
+seed (`jaxmripp.runtime.team_key(seed)`: reproducible, no secret; a real team draws one
+with `team_key()`), and takes only messages signed with it (`MissionSettings.signed`).
+
 Positions go to the planner as the waypoint it chose (the drones fly to within a few
 centimetres of it; localisation is perfect, as in the paper); images and window sightings
 come from the camera's true pose. Windows are counted once, by ground truth, when a drone
@@ -27,6 +31,7 @@ from jaxmripp.flight.city import City, CityFrame
 from jaxmripp.flight.quadrotor import QuadrotorParams
 from jaxmripp.flight.scene import Crash, Scene
 from jaxmripp.flight.team import exchange, pads
+from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.depth import DepthCamera
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.runtime.weights import ExportedPolicy, RuntimeSpec
@@ -45,6 +50,7 @@ class MissionSettings:
     max_rounds: int | None = None  # default: enough for the budget
     record_every_s: float = 1.0  # positions kept for the pictures
     sectors: bool = False  # drones keep to their sectors (OnboardPlanner(sectors=True))
+    signed: bool = True  # the radio carries the team key's tags (jaxmripp.runtime.auth)
     frame: CityFrame = CityFrame()
     quadrotor: QuadrotorParams = QuadrotorParams()
 
@@ -58,6 +64,8 @@ class MissionResult:
     rounds: int
     late_arrivals: int  # flights that had not arrived when their round's time ran out
     false_free: int  # voxels inside a building that some drone's map holds FREE
+    refused_messages: int  # radio messages some drone refused (none in an honest team)
+    map_conflicts: int  # voxels of merged deltas held FREE by one drone, OCCUPIED by another
     sim_seconds: float
     wall_seconds: float
     decision_ms: list[float]  # per robot decision (decide + resolve)
@@ -80,7 +88,8 @@ class MissionResult:
             "crashes": len(self.crashes),
             "crash_list": [dataclasses.asdict(c) for c in self.crashes[:20]],
             "rounds": self.rounds, "late_arrivals": self.late_arrivals,
-            "false_free_voxels": self.false_free, "sim_seconds": round(self.sim_seconds, 2),
+            "false_free_voxels": self.false_free, "refused_messages": self.refused_messages,
+            "map_conflicts": self.map_conflicts, "sim_seconds": round(self.sim_seconds, 2),
             "wall_seconds": round(self.wall_seconds, 2),
             "sim_realtime_factor": round(self.sim_seconds / self.wall_seconds, 2),
             "decision_ms_median": round(float(np.median(self.decision_ms)), 3),
@@ -118,7 +127,8 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
     planners = [OnboardPlanner(spec, i, per_robot, team_size=n,
                                policy=policy.policy if policy is not None else None,
                                mode=planner, max_steps=rounds, seed=seed * 1000 + i,
-                               sectors=settings.sectors)
+                               sectors=settings.sectors,
+                               team_key=team_key(seed) if settings.signed else None)
                 for i in range(n)]
     position = pads(spec.start, n, pad_spacing)
     heading = np.full(n, spec.start_heading, np.int64)
@@ -162,6 +172,8 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
         planner=planner, windows=city.n_windows, found=np.isfinite(found_time),
         crashes=list(scene.crashes), rounds=step, late_arrivals=late,
         false_free=sum(int(np.sum((p.map.codes == FREE) & solid)) for p in planners),
+        refused_messages=sum(sum(p.rejected_messages.values()) for p in planners),
+        map_conflicts=sum(p.sharing.conflicts for p in planners),
         sim_seconds=scene.time,
         wall_seconds=time.perf_counter() - wall_start, decision_ms=decision_ms,
         sense_ms=sense_ms, max_speed=max_speed, track_error=track_error,

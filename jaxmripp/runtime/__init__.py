@@ -9,7 +9,9 @@
     radio.send(planner.intent_message()); [planner.receive_intent(m) for m in radio.inbox()]
     decision = planner.resolve()                                # decision.pose, .reason
 
-The map round (the `map_message` line) runs with the export's `radio.share_maps` only. See
+The map round (the `map_message` line) runs with the export's `radio.share_maps` only. A
+team that shares a secret key (`OnboardPlanner.load(..., team_key=key)`, every robot the
+same `team_key()`) signs its messages and refuses others (`auth`). See
 `jaxmripp.runtime.planner` for the round, `weights` for the export format and `messages`
 for the radio protocol. The planner's parts: `validation` (inputs), `exchange` (its
 broadcasts and receptions), `feeding` (GP feeding, rule in `jaxmripp.spec.feeding`),
@@ -23,11 +25,12 @@ Every module here imports only NumPy, the standard library, `jaxmripp.spec` and 
 runtime modules (tests/test_runtime_numpy_only.py checks it).
 """
 
+from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.candidates import Candidates
 from jaxmripp.runtime.depth import DepthCamera, GridFrame
 from jaxmripp.runtime.errors import (CorruptWeightsError, InvalidPoseError, MessageError,
                                      PlannerStateError, ProtocolVersionError, RuntimeInputError,
-                                     WeightsFormatError)
+                                     TeamKeyError, WeightsFormatError)
 from jaxmripp.runtime.messages import (PROTOCOL_VERSION, MapDelta, MapMessage, Message, decode,
                                        decode_map, encode, encode_map)
 from jaxmripp.runtime.planner import Decision, OnboardPlanner
@@ -41,5 +44,6 @@ __all__ = [
     "Message", "MessageError",
     "NumpyPolicy", "OnboardPlanner", "PROTOCOL_VERSION", "PlannerStateError",
     "ProtocolVersionError", "ROBOT_STATE", "RuntimeInputError", "RuntimeSpec",
-    "WeightsFormatError", "decode", "decode_map", "encode", "encode_map", "load",
+    "TeamKeyError", "WeightsFormatError", "decode", "decode_map", "encode", "encode_map",
+    "load", "team_key",
 ]

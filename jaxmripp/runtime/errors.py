@@ -28,7 +28,16 @@ class ProtocolVersionError(RuntimeInputError):
 
 
 class MessageError(RuntimeInputError):
-    """A radio message is malformed (not JSON, missing fields, bad values)."""
+    """A radio message is malformed (not JSON, missing fields, bad values) or, on a team
+    with a key, unsigned, forged or stale (`jaxmripp.runtime.auth.REASONS`)."""
+
+    def __init__(self, message: str, reason: str = "malformed"):
+        super().__init__(message)
+        self.reason = reason
+
+
+class TeamKeyError(RuntimeInputError):
+    """A team key for signing radio messages is not bytes, or too short."""
 
 
 class InvalidPoseError(RuntimeInputError):

@@ -4,15 +4,20 @@ takes from each (the order is in `jaxmripp.runtime.planner`'s docstring).
 Kept apart from the planner so that each module reads as one part of the round: here what
 goes out and comes in over the radio (`jaxmripp.spec.protocol`), there sensing and the
 decision. `RadioExchange` is a base of `OnboardPlanner` and works on its state (`spec`,
-`id`, `team_size`, the histories, `contacts`, `intents`, `sharing`, the round's flags).
+`id`, `team_size`, the histories, `sharing`, the round's flags) and keeps the radio's own
+(`_init_radio`). With a team key (`jaxmripp.runtime.auth`) every broadcast is signed and
+every reception checked; whatever a reception refuses is counted in `rejected_messages`.
 """
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
-from jaxmripp.runtime import messages
-from jaxmripp.runtime.errors import MessageError, PlannerStateError
+from jaxmripp.runtime import auth, messages
+from jaxmripp.runtime.errors import MessageError, PlannerStateError, ProtocolVersionError
+from jaxmripp.spec.protocol import MAP_MESSAGE_TYPE, MESSAGE_TYPE
 
 F32 = np.float32
 ROUND = ("the round: sense, message / receive, map_message / receive_map, decide, "
@@ -22,20 +27,35 @@ ROUND = ("the round: sense, message / receive, map_message / receive_map, decide
 class RadioExchange:
     """Broadcasts and receptions of `OnboardPlanner`."""
 
+    def _init_radio(self, team_key: bytes | None) -> None:
+        """The radio's state of a new planner (after `id`)."""
+        self.radio = auth.RadioAuth(team_key, self.id)
+        self.contacts: dict[int, np.ndarray] = {}  # positions heard this round, by sender
+        self.intents: dict[int, tuple] = {}  # sender -> (position, target, budget_left)
+        self.last_map_message_bytes: int | None = None
+
+    @property
+    def rejected_messages(self) -> dict[str, int]:
+        """Messages `receive`, `receive_map` and `receive_intent` refused, by reason
+        (`jaxmripp.runtime.auth.REASONS`: malformed, version, and with a team key
+        unsigned, forged, stale)."""
+        return dict(self.radio.rejected)
+
     def message(self, start: int = 0) -> bytes:
         """This robot's first broadcast of a round: its history from `start`, its position
         and its budget left (no intent)."""
         self._require_sensed("message")
         start = min(max(int(start), 0), len(self.history_pose))
         poses = np.asarray(self.history_pose[start:], F32).reshape(-1, 4)
-        return messages.encode(messages.Message(
+        seq = self.radio.next_sequence()
+        return self.radio.seal(messages.encode(messages.Message(
             sender=self.id, position=self.position, heading=self.heading, start=start,
             poses=poses, utilities=np.asarray(self.history_utility[start:], F32),
-            budget_left=self.budget_left))
+            budget_left=self.budget_left, seq=seq)), seq)
 
     def receive(self, data: bytes | str | messages.Message) -> messages.Message | None:
         """Takes one message heard this round; returns it (None for this robot's own echo)."""
-        message = self._heard(data, messages.Message, messages.decode)
+        message = self._heard(data, messages.Message, messages.read_message)
         if message is None:
             return None
         self.contacts[message.sender] = np.asarray(message.position, F32)
@@ -56,7 +76,9 @@ class RadioExchange:
         self._require_map_round("map_message")
         if self._map_sent:
             raise PlannerStateError(f"map_message: already sent this round ({ROUND})")
-        data = messages.encode_map(self.sharing.message(self.contacts, self.step))
+        seq = self.radio.next_sequence()
+        deltas = self.sharing.message(self.contacts, self.step)
+        data = self.radio.seal(messages.encode_map(dataclasses.replace(deltas, seq=seq)), seq)
         self._map_sent = True
         self.last_map_message_bytes = len(data)
         return data
@@ -70,7 +92,7 @@ class RadioExchange:
             raise PlannerStateError("receive_map: call map_message() first this round (a "
                                     "robot sends its map as its own sensing left it)")
         message = self._heard(data, messages.MapMessage,
-                              lambda raw: messages.decode_map(raw, self.spec.size))
+                              lambda envelope: messages.read_map(envelope, self.spec.size))
         if message is None:
             return None
         if message.size != self.spec.size:
@@ -86,30 +108,57 @@ class RadioExchange:
         flight it chose (null when it hovers), its position and budget left; no poses."""
         decision = self._require_decided("intent_message")
         end = len(self.history_pose)
-        return messages.encode(messages.Message(
+        seq = self.radio.next_sequence()
+        return self.radio.seal(messages.encode(messages.Message(
             sender=self.id, position=self.position, heading=self.heading, start=end,
             poses=np.zeros((0, 4), F32), utilities=np.zeros(0, F32),
-            budget_left=self.budget_left,
-            intent=None if decision.hover else decision.position))
+            budget_left=self.budget_left, intent=None if decision.hover else decision.position,
+            seq=seq)), seq)
 
     def receive_intent(self, data: bytes | str | messages.Message
                        ) -> messages.Message | None:
         """Takes one intent message (`intent_message`) heard after `decide`; returns it
         (None for this robot's own echo)."""
         self._require_decided("receive_intent")
-        message = self._heard(data, messages.Message, messages.decode)
+        message = self._heard(data, messages.Message, messages.read_message)
         if message is None:
             return None
         self.intents[message.sender] = (np.asarray(message.position, F32), message.intent,
                                         F32(message.budget_left))
         return message
 
-    def _heard(self, data, kind, decode):
-        """A decoded message (of class `kind`) from a teammate, or None for this robot's
-        own echo."""
-        message = data if isinstance(data, kind) else decode(data)
-        if message.sender == self.id:
-            return None
+    def _heard(self, data, kind, read):
+        """A checked message (of class `kind`, its fields read from a parsed envelope by
+        `read`) from a teammate, or None for this robot's own echo. Checks everything
+        before anything changes; a refusal is counted by its reason and raised."""
+        try:
+            if isinstance(data, kind):
+                self.radio.object_allowed(kind.__name__)
+                return None if data.sender == self.id else self._teammate(data)
+            envelope = messages.parse(data, MAP_MESSAGE_TYPE if kind is messages.MapMessage
+                                      else MESSAGE_TYPE)
+            if envelope.sender == self.id:
+                return None
+            self._teammate(envelope)
+            self.radio.check(envelope)
+            message = read(envelope)
+        except ProtocolVersionError:
+            self.radio.rejected["version"] += 1
+            raise
+        except MessageError as error:
+            self.radio.rejected[error.reason] += 1
+            raise
+        self.radio.accept(envelope)
+        return message
+
+    def _known_robots(self) -> np.ndarray:
+        """(K, 3) float32 positions of the robots heard this round."""
+        if not self.contacts:
+            return np.zeros((0, 3), F32)
+        return np.stack(list(self.contacts.values())).astype(F32)
+
+    def _teammate(self, message):
+        """`message` (anything with a `sender`) if its sender is an id of this team."""
         if message.sender >= self.team_size:
             raise MessageError(f"radio message from robot {message.sender}: ids of this team "
                                f"are 0 .. {self.team_size - 1}")

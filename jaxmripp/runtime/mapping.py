@@ -233,17 +233,23 @@ class OccupancyMap:
         self.codes[flat] = OCCUPIED
         raise_tops(self.top, np.array([flat]), np.array([OCCUPIED]), self.size)
 
-    def merge(self, flat: np.ndarray, values: np.ndarray) -> np.ndarray:
-        """Another robot's codes at voxels `flat` (`jaxmripp.spec.sharing`): taken where this
-        map is UNKNOWN; every OCCUPIED one raises the tops (the maximum of the two maps'
-        tops, since a map's tops are those of the OCCUPIED voxels it ever held). Returns
-        the flat indices that were UNKNOWN here and are now known."""
+    def merge(self, flat: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, int]:
+        """Another robot's codes at voxels `flat`, by the merge rule of
+        `jaxmripp.spec.sharing`: an UNKNOWN voxel takes the sender's code, a FREE one
+        becomes OCCUPIED where the sender holds it OCCUPIED, an OCCUPIED one stays; every
+        OCCUPIED one raises the tops (the maximum of the two maps' tops, since a map's tops
+        are those of the OCCUPIED voxels it ever held). Returns the flat indices whose code
+        changed and the number of voxels the two maps disagreed on (FREE here and
+        OCCUPIED there, or the other way round)."""
         flat = np.asarray(flat, np.int64)
         values = np.asarray(values, np.int8)
-        fresh = (self.codes[flat] == UNKNOWN) & (values != UNKNOWN)
-        self.codes[flat[fresh]] = values[fresh]
+        ours = self.codes[flat]
+        known = values != UNKNOWN
+        disagree = known & (ours != UNKNOWN) & (ours != values)
+        change = known & ((ours == UNKNOWN) | ((ours == FREE) & (values == OCCUPIED)))
+        self.codes[flat[change]] = values[change]
         raise_tops(self.top, flat, values, self.size)
-        return flat[fresh]
+        return flat[change], int(disagree.sum())
 
     def mark_own_voxel(self, position: np.ndarray) -> None:
         """The voxel the robot is in is FREE (it is there; `jaxmripp.spec.flight`)."""

@@ -32,7 +32,8 @@ has it) and picks the next pose with the exported policy or the greedy rule of
 flight announced by a higher-priority robot heard (`safety.priority`), the robot holds -- it
 stays where it is, is charged nothing, and the next `sense` gets the same pose. Inputs are
 checked first (`validation`), so a rejected call changes nothing, and calls out of order
-(`ROUND` in `exchange`) are refused.
+(`ROUND` in `exchange`) are refused. With a team key (`team_key`, `jaxmripp.runtime.auth`)
+every broadcast is signed and unsigned, forged or replayed messages are refused.
 
 Safety filter (`safety`): whatever picks the pose, it is chosen among candidates whose
 straight flight is known free (every voxel it traverses is FREE in the robot's map, the
@@ -114,6 +115,7 @@ class OnboardPlanner(RadioExchange):
         seed: int | None = None,
         sectors: bool = False,
         sector_count: int | None = None,
+        team_key: bytes | None = None,
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
         team_size: robot ids are 0 .. team_size - 1 (default: the trained team size);
@@ -125,7 +127,9 @@ class OnboardPlanner(RadioExchange):
         sector of the world, seen from the team's first pad `spec.start`, while it has
         unknown views there, if the radio range is short enough for the rule
         (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps); sector_count:
-        its `radio.sector_count` (default: the export's; with sectors only).
+        its `radio.sector_count` (default: the export's; with sectors only); team_key: the
+        team's secret (bytes, `jaxmripp.runtime.auth`): every message is then signed and
+        only messages signed with it are taken (`rejected_messages` counts the others).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
         `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
@@ -147,7 +151,7 @@ class OnboardPlanner(RadioExchange):
 
         self.map = OccupancyMap(spec.size)
         self.sharing = MapSharing(self.id, self.map)
-        self.last_map_message_bytes: int | None = None
+        self._init_radio(team_key)
         self.utility_gp = GaussianProcess(spec.gp)
         self.comm_gp = GaussianProcess(spec.gp)
         self.feeding = FeedSchedule(self.id, team_size, spec.gp.peer_rounds,
@@ -164,15 +168,14 @@ class OnboardPlanner(RadioExchange):
         self.history_utility: list[np.float32] = []
         self.peer_pose: dict[int, list[np.ndarray]] = {j: [] for j in self._peer_ids()}
         self.peer_utility: dict[int, list[np.float32]] = {j: [] for j in self._peer_ids()}
-        self.contacts: dict[int, np.ndarray] = {}  # positions heard this round, by sender
         self._command: tuple[np.ndarray, np.ndarray] | None = None  # (from, to) of last move
         self._pending: Decision | None = None  # decided, not resolved yet
-        self.intents: dict[int, tuple] = {}  # sender -> (position, target, budget_left)
         self._map_sent = self._decided = False  # this round's map message / decision
 
     @classmethod
     def load(cls, export: str | Path, robot_id: int, budget: float, **kwargs) -> "OnboardPlanner":
-        """A planner driven by an exported policy (directory or policy.json)."""
+        """A planner driven by an exported policy (directory or policy.json); kwargs as
+        the constructor's (team_key: the team's radio key)."""
         exported = weights.load(export)
         return cls(exported.spec, robot_id, budget, policy=exported.policy, **kwargs)
 
@@ -357,11 +360,6 @@ class OnboardPlanner(RadioExchange):
         charge = np.linalg.norm(position - self.position).astype(F32) \
             + F32(self.spec.turn_cost) * F32(heading != self.heading)
         self.budget_left = F32(max(self.budget_left - charge, F32(0.0)))
-
-    def _known_robots(self) -> np.ndarray:
-        if not self.contacts:
-            return np.zeros((0, 3), F32)
-        return np.stack(list(self.contacts.values())).astype(F32)
 
     def _sample(self, stats: dict) -> cands.Candidates:
         """The robot's own candidates; the draw count is the JAX sampler's (draw 0 is the

@@ -36,6 +36,9 @@ class MapSharing:
         self.learned = np.full(cells, -1, np.int32)  # round the voxel's code was last set
         self.source = np.full(cells, OWN, np.int32)  # the peer it came from, or OWN
         self.last_sent: dict[int, int] = {}  # peer -> round of the last map message to it
+        # Voxels a merged delta held otherwise than this map (FREE against OCCUPIED): none
+        # while every map is true to the world, as in the simulator.
+        self.conflicts = 0
         self._noted = occupancy.codes.copy()  # codes as of the last bookkeeping
 
     def note_sensed(self, round_: int) -> None:
@@ -67,10 +70,11 @@ class MapSharing:
         return MapMessage(self.id, self.map.size, tuple(deltas))
 
     def merge(self, delta: MapDelta, sender: int, round_: int) -> int:
-        """Merges a delta from `sender` (`OccupancyMap.merge`); returns the number of
-        voxels this robot learned from it."""
+        """Merges a delta from `sender` (`OccupancyMap.merge`: OCCUPIED is never freed);
+        returns the number of voxels whose code it changed."""
         values = np.where(delta.occupied, OCCUPIED, FREE).astype(np.int8)
-        fresh = self.map.merge(delta.voxels, values)
+        fresh, disagreed = self.map.merge(delta.voxels, values)
+        self.conflicts += disagreed
         self.learned[fresh] = round_
         self.source[fresh] = int(sender)
         self._noted[fresh] = self.map.codes[fresh]
