@@ -15,11 +15,17 @@ from jaxmripp.parallel.mesh import ShardingError, is_main_process
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--config", default="configs/default.yaml")
-    parser.add_argument("--resume", metavar="RUN_DIR", help="continue this run from its last checkpoint")
+    parser.add_argument("--resume", metavar="RUN_DIR",
+                        help="continue this run from its last checkpoint; overrides may change "
+                             "only train.updates, train.updates_per_chunk, train.keep_checkpoints, "
+                             "train.log, train.eval_* and eval.* (recorded in its config.yaml "
+                             "and resumes.jsonl)")
     parser.add_argument("--stop-after-chunks", type=int, default=None,
                         help="stop after this many chunks (resume later with --resume)")
     parser.add_argument("--runs", default="runs", help="where new run folders are created")
     parser.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no compilation lines, progress bar or line per chunk")
     parser.add_argument("overrides", nargs="*", help="dotted overrides, e.g. world.size=64")
     launch.add_arguments(parser)
     args = parser.parse_args(argv)
@@ -38,7 +44,7 @@ def main(argv=None) -> int:
         say(f"run folder: {run_dir}")
         state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
                                stop_after_chunks=args.stop_after_chunks, log=say,
-                               initial_params=pipeline.initial_params(cfg))
+                               initial_params=pipeline.initial_params(cfg), quiet=args.quiet)
     except (cfgmod.ConfigError, launch.LaunchError, ShardingError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

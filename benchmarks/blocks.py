@@ -49,7 +49,7 @@ def main(argv=None) -> int:
         except cfgmod.ConfigError as err:
             parser.error(str(err))
         trainer = trainmod.Trainer.build(cfg)
-        state = trainer.place(trainer.init())
+        state = trainer.with_runner(trainer.place(trainer.init()))
         state, _ = jax.block_until_ready(trainer.chunk(state, trainer.env_dynamic))  # compiles
         runs[blocks] = [trainer, state]
     samples = cfg.train.envs * cfg.train.rollout_steps * cfg.robots.count

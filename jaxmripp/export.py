@@ -82,20 +82,11 @@ def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | No
                ) -> tuple[Path, Path]:
     """Restores a training run's checkpoint and exports it (default: RUN_DIR/export)."""
     from jaxmripp import config as cfgmod
-    from jaxmripp.learn.checkpoint import Checkpoints
-    from jaxmripp.learn.train import Trainer
-
-    import jax
+    from jaxmripp.learn.train import restore
 
     run_dir = Path(run_dir)
     cfg = cfgmod.load(run_dir / "config.yaml")
-    trainer = Trainer.build(cfg)
-    checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    try:
-        # Shapes only: tracing init is enough for orbax and skips an eager env reset.
-        state = checkpoints.restore(jax.eval_shape(trainer.init), best=best)
-    finally:
-        checkpoints.close()
+    state = restore(cfg, run_dir, best)
     source = {"run_dir": str(run_dir), "checkpoint": "best" if best else "last",
               "update": int(state.update)}
     return export(cfg, state.params, out_dir or run_dir / "export", source)

@@ -49,7 +49,7 @@ def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None 
     from jaxmripp import config as cfgmod
     from jaxmripp.evaluation import viz
     from jaxmripp.export import export_run
-    from jaxmripp.learn.train import read_metrics
+    from jaxmripp.learn.metrics import episode_mean, read_metrics
 
     cfg = cfgmod.load(run_dir / "config.yaml")
     records = read_metrics(run_dir)
@@ -72,7 +72,9 @@ def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None 
         "checkpoint": "best" if best else "last",
         "updates": records[-1]["update"],
         "agent_steps": records[-1]["env_steps"],
-        "training_discovered": round(records[-1]["discovered"], 4),
+        # over the episodes that ended in the last chunk's updates
+        "training_discovered": round(
+            episode_mean(records[-cfg.train.updates_per_chunk:], "discovered"), 4),
         "evaluation": figures,
     }
     if evaluation_command is not None:

@@ -49,8 +49,13 @@ def test_smoke_run_trains_three_chunks_with_finite_metrics(cfg, full_run):
     records = trainmod.read_metrics(run_dir)
     assert [r["update"] for r in records] == [1, 2, 3]
     for record in records:
-        for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "return", "discovered"):
+        for key in ("policy_loss", "value_loss", "entropy", "approx_kl", "imitation",
+                    "r_exploration", "seconds", "agent_steps_per_s"):
             assert np.isfinite(record[key]), key
+        # the episode figures exactly where an episode ended
+        assert ("discovered" in record) == ("return" in record) == (record["episodes"] > 0)
+    # Episodes run on across the one-update chunks (4 steps each, 8-step episodes).
+    assert sum(r["episodes"] for r in records) > 0
     assert all(np.isfinite(x).all() for x in jax.tree.leaves(state.params))
     assert (run_dir / "config.yaml").exists()
     assert cfgmod.load(run_dir / "config.yaml") == cfg
@@ -65,6 +70,7 @@ def test_interrupted_run_resumes_to_identical_parameters(cfg, full_run, tmp_path
     assert int(resumed.update) == 3
     assert _leaves_equal(resumed.params, uninterrupted.params)
     assert _leaves_equal(resumed.opt_state, uninterrupted.opt_state)
+    assert _leaves_equal(resumed.runner, uninterrupted.runner)
     lines = (run_dir / "metrics.jsonl").read_text().splitlines()
     assert [json.loads(line)["update"] for line in lines] == [1, 2, 3]
 
@@ -72,9 +78,10 @@ def test_interrupted_run_resumes_to_identical_parameters(cfg, full_run, tmp_path
 def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
     run_dir, state = full_run
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
-    restored = checkpoints.restore(trainer.init())
+    restored = checkpoints.restore(trainer.abstract_state())
     checkpoints.close()
     assert int(restored.update) == int(state.update)
+    assert _leaves_equal(restored.runner, state.runner)
     obs = _random_observations(jax.random.PRNGKey(3), trainer, batch=(8,))
     memory = jnp.zeros((8, cfg.policy.width))
     act = jax.jit(lambda params: ppo.apply_batched(trainer.network, params, memory, obs))
@@ -85,7 +92,7 @@ def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
 def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
     run_dir, _ = full_run
     wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32"])
-    template = trainmod.Trainer.build(wide).init()
+    template = trainmod.Trainer.build(wide).abstract_state()
     checkpoints = Checkpoints(run_dir / "checkpoints", 3)
     with pytest.raises(CheckpointError) as err:
         checkpoints.restore(template)
@@ -391,13 +398,18 @@ def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     assert _leaves_equal(_final_params(cfg, tmp_path / cfg.train.name), full_run[1].params)
 
 
-def test_training_chunks_cycle_through_the_radio_ranges_and_rollouts_keep_to_sectors():
-    """train.radio_ranges: chunk i trains at range i mod their count. train.sectors: at a
-    short range every robot samples from the sector rule's mask (offering nothing outside
-    its sector while its own has unknown views), which the plain rollout does not."""
+def test_training_updates_cycle_through_the_radio_ranges_and_rollouts_keep_to_sectors():
+    """train.radio_ranges: update u trains at range u mod their count, traced or not.
+    train.sectors: at a short range every robot samples from the sector rule's mask
+    (offering nothing outside its sector while its own has unknown views), which the plain
+    rollout does not."""
     cyc = cfgmod.load("configs/smoke.yaml", ["train.radio_ranges=[0.1, .inf]"])
-    ranges = [float(trainmod.Trainer.build(cyc).chunk_dynamic(i).radio_range) for i in range(3)]
+    base = DynamicParams.from_config(cyc)
+    ranges = [float(trainmod.update_dynamic(cyc, base, u).radio_range) for u in range(3)]
     assert ranges == [np.float32(0.1), np.inf, np.float32(0.1)]
+    traced = jax.jit(lambda u: trainmod.update_dynamic(cyc, base, u).radio_range)
+    assert [float(traced(jnp.int32(u))) for u in (3, 4)] == [np.inf, np.float32(0.1)]
+    assert trainmod.update_dynamic(cfgmod.load("configs/smoke.yaml"), base, 5) is base
 
     cfg = cfgmod.load("configs/smoke.yaml", ["train.sectors=true", "train.rollout_steps=6"])
     trainer = trainmod.Trainer.build(cfg)
@@ -423,15 +435,3 @@ def test_training_chunks_cycle_through_the_radio_ranges_and_rollouts_keep_to_sec
     assert in_rule.all() and chosen_offered.all()
     in_rule, _ = rollout(np.inf)  # a radio reaching the whole world: no sectors
     assert not in_rule.all()
-
-
-def test_a_chunk_shorter_than_an_episode_is_warned_about():
-    """Environments restart at every chunk: 2 x 4 steps reach an 8-step episode's end,
-    1 x 4 steps never do."""
-    steps = ["train.rollout_steps=4", "episode.max_steps=8"]
-    short = cfgmod.load("configs/smoke.yaml", ["train.updates_per_chunk=1", *steps])
-    warning = trainmod.short_chunk_warning(short)
-    assert warning is not None and "4 times" in warning and "max_steps = 8" in warning
-    longer = cfgmod.load("configs/smoke.yaml",
-                         ["train.updates_per_chunk=2", "train.updates=2", *steps])
-    assert trainmod.short_chunk_warning(longer) is None

@@ -52,6 +52,7 @@ def _pair(rule):
 _POSITIVE = _range(0, lo_open=True)
 _NONNEG = _range(0)
 _UNIT = _range(0, 1)
+METRIC_SINKS = ("jsonl", "tensorboard", "wandb")  # where train.log may send metrics
 PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "nbv_ahead", "mcts",
             "rig", "oracle")
 
@@ -132,6 +133,8 @@ RULES: dict[str, tuple] = {
     "train.updates_per_chunk": _range(1, 10**6),
     "train.keep_checkpoints": _range(1, 1000),
     "train.radio_ranges": _each(_NONNEG),
+    "train.log": (lambda v: len(set(v)) == len(v) and all(x in METRIC_SINKS for x in v),
+                  "a list of distinct names from " + ", ".join(METRIC_SINKS)),
     "train.blocks": _range(0, 1 << 20),
     "train.eval_worlds": _range(1, 100_000),
     "train.eval_budget": _POSITIVE,
@@ -231,9 +234,6 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
             problems.append((f"eval.{name}", getattr(cfg.eval, name),
                              f"one entry per world size ({len(cfg.eval.world_sizes)}), "
                              "because eval.zip_with_size pairs them"))
-    if cfg.train.updates % cfg.train.updates_per_chunk:
-        problems.append(("train.updates", cfg.train.updates,
-                         f"a multiple of train.updates_per_chunk = {cfg.train.updates_per_chunk}"))
     if cfg.train.envs % cfg.ppo.minibatches:
         problems.append(("ppo.minibatches", cfg.ppo.minibatches,
                          f"a divisor of train.envs = {cfg.train.envs}"))

@@ -197,6 +197,9 @@ class TrainConfig:
     rollout_steps: int = 16
     reset_share: float = 0.25  # most environments restarted per rollout step, as a share
     updates: int = 100
+    # Updates per compiled call (a chunk): how often metrics reach the host, the progress
+    # line is printed and a checkpoint is saved. It does not change what is trained: the
+    # environments carry on from one chunk to the next.
     updates_per_chunk: int = 10
     # Environments are computed in this many equal blocks (0: one per device); every
     # device count dividing it trains to the same parameters (jaxmripp.parallel.blocks).
@@ -206,13 +209,17 @@ class TrainConfig:
     # continue a policy trained with fewer robots; one trained without the view prior
     # gets it at weight policy.view_prior. "" = random initialisation.
     init_from: str = ""
-    # Chunk i trains at radio range radio_ranges[i % len] (empty: radio.range throughout),
+    # Update u trains at radio range radio_ranges[u % len] (empty: radio.range throughout),
     # so that one policy meets the short ranges the evaluation tests as well as the long.
     radio_ranges: tuple[float, ...] = ()
     # Robots keep to their sectors while the radio range is short (jaxmripp.spec.sectors),
     # in training rollouts as eval.sectors does in sweeps.
     sectors: bool = False
     keep_checkpoints: int = 3
+    # Where every update's metrics go (jaxmripp.learn.metrics): jsonl (metrics.jsonl),
+    # tensorboard (event files in tensorboard/), wandb (Weights & Biases, offline unless
+    # WANDB_MODE says otherwise; needs `pip install wandb`)
+    log: tuple[str, ...] = ("jsonl", "tensorboard")
     eval_worlds: int = 100
     eval_budget: float = 10.0
 

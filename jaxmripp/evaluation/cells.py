@@ -18,18 +18,17 @@ import collections
 import dataclasses
 import functools
 import math
-import sys
 import time
 
 import jax
 import jax.numpy as jnp
 import numpy as np
-import tqdm
 from flax import struct
 
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim import env as envmod
 from jaxmripp.sim import episode, xla_options
+from jaxmripp.parallel import progress
 from jaxmripp.parallel.mesh import data_parallel
 from jaxmripp.sim.params import DynamicParams, EnvParams, stack
 
@@ -201,11 +200,11 @@ def run_shapes(planner: Planner, params: EnvParams, shapes: list[Shape],
     outputs = []
     start = time.perf_counter()
     # Large worlds run in many chunks, minutes each: show how far the planner has got.
-    bar = tqdm.tqdm(range(chunks), desc=f"{planner.name}, N = {params.n_robots}, "
-                    f"G = {params.size}: chunks", disable=chunks < 2, leave=False,
-                    file=sys.stderr)
-    for c in bar:
-        outputs.append(data.gather(jax.block_until_ready(compiled(*part(c)))))
+    with progress.bar(total, f"{planner.name}, N = {params.n_robots}, G = {params.size}",
+                      quiet=chunks < 2, unit="episode", leave=False) as bar:
+        for c in range(chunks):
+            outputs.append(data.gather(jax.block_until_ready(compiled(*part(c)))))
+            bar.update(min(batch, total - c * batch))
     run_s = time.perf_counter() - start
     result, snap = jax.tree.map(lambda *xs: np.concatenate(xs)[:total], *outputs)
     ms = 1000.0 * run_s / (chunks * batch * params.max_steps * params.n_robots)

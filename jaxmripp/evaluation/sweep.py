@@ -39,6 +39,7 @@ from jaxmripp.sim.params import StaticAhead
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
 from jaxmripp.evaluation.planners import baseline_planner, deployed, eval_setting
 from jaxmripp.evaluation.stats import mean_ci, welch_ttest
+from jaxmripp.parallel import progress as progressmod
 
 def shapes_of(cfg: Config) -> list[Shape]:
     """The sweep's cells in order: world size, team size, radio range, budget."""
@@ -189,7 +190,8 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
               batch: int | None = None, keep_pictures: bool = True,
               compiler_options: dict | None = None) -> SweepResult:
     """Runs every planner on every shape of cfg.eval, one compilation per planner and
-    (team size, world size); prints one progress line per cell and planner."""
+    (team size, world size); prints one progress line per cell and planner, under a bar
+    with the time left on a terminal (`parallel.progress`)."""
     policies = dict(policies or {})
     e = cfg.eval
     names = planner_names(cfg, policies)
@@ -198,11 +200,12 @@ def run_sweep(cfg: Config, policies: dict[str, Planner] | None = None,
     time_planning = eval_setting(cfg, "time_planning") if time_planning is None else time_planning
     batch = eval_setting(cfg, "batch") if batch is None else batch
     shapes = shapes_of(cfg)
-    progress = _Progress(log, len(shapes) * len(names))
     runs = []
-    for group in static_groups(shapes):
-        runs += _run_group(cfg, group, names, policies, progress, time_planning, batch=batch,
-                           keep_pictures=keep_pictures, compiler_options=compiler_options)
+    with _Progress(log, len(shapes) * len(names)) as progress:
+        for group in static_groups(shapes):
+            runs += _run_group(cfg, group, names, policies, progress, time_planning,
+                               batch=batch, keep_pictures=keep_pictures,
+                               compiler_options=compiler_options)
     # Shape-major, planners in order within a shape, as the tables and files list them.
     order = {shape: i for i, shape in enumerate(shapes)}
     runs.sort(key=lambda r: (order[r.shape], names.index(r.planner)))
@@ -254,13 +257,21 @@ def static_groups(shapes: Sequence[Shape]) -> list[list[Shape]]:
 
 
 class _Progress:
-    """One log line per finished cell and planner."""
+    """One log line per finished cell and planner, above a bar over them all."""
 
     def __init__(self, log: Callable[[str], None], total: int):
-        self.log, self.total, self.done = log, total, 0
+        self.log, self.total, self.done = progressmod.above(log), total, 0
+        self.bar = progressmod.bar(total, "sweep", unit="cell")
+
+    def __enter__(self) -> "_Progress":
+        return self
+
+    def __exit__(self, *_) -> None:
+        self.bar.close()
 
     def cell(self, run: ShapeRun) -> None:
         self.done += 1
+        self.bar.update(1)
         mean, std, _ = mean_ci(run.discovered)
         shared = f" (shared by {run.cells} cells)" if run.cells > 1 else ""
         plan = ("" if not math.isfinite(run.plan_ms_per_robot_step)

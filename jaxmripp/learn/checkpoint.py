@@ -1,4 +1,12 @@
-"""Orbax checkpoints of the training state: the last k chunks and the best one."""
+"""Orbax checkpoints of the training state: the last k chunks and the best one.
+
+A chunk's state goes to best/ first and to last/ after: last/ is what a run resumes from,
+so a run killed between the two resumes from the chunk before, trains this one again to
+the same state and offers it to best/ again, where orbax keeps the better of the two
+(a step best/ already holds is that same state and stays as it is). Orbax writes each
+step into a temporary folder and renames it when complete, so a run killed while saving
+leaves no half-written step behind.
+"""
 
 from __future__ import annotations
 
@@ -19,37 +27,71 @@ class Checkpoints:
     def __init__(self, directory: str | Path, keep: int):
         directory = Path(directory).absolute()
         sync = dict(enable_async_checkpointing=False, create=True)
+        # The handler named, so that `fields` can read a checkpoint's tree before restoring.
+        handler = dict(item_handlers=ocp.StandardCheckpointHandler())
         self.last = ocp.CheckpointManager(
-            directory / "last", options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync))
+            directory / "last", options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync),
+            **handler)
         self.best = ocp.CheckpointManager(
             directory / "best", options=ocp.CheckpointManagerOptions(
-                max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync))
+                max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync),
+            **handler)
 
     def save(self, step: int, state: Any, score: float) -> None:
+        if step not in self.best.all_steps():
+            self.best.save(step, args=ocp.args.StandardSave(state),
+                           metrics={"score": float(score)})
+            self.best.wait_until_finished()
         self.last.save(step, args=ocp.args.StandardSave(state))
-        self.best.save(step, args=ocp.args.StandardSave(state), metrics={"score": float(score)})
         self.last.wait_until_finished()
-        self.best.wait_until_finished()
 
     def latest_step(self) -> int | None:
         return self.last.latest_step()
 
-    def restore(self, template: Any, best: bool = False) -> Any:
+    def _step(self, best: bool) -> tuple[ocp.CheckpointManager, int]:
         manager = self.best if best else self.last
         step = manager.best_step() if best else manager.latest_step()
         if step is None:
             raise CheckpointError(f"{manager.directory}: no checkpoint to restore")
-        return restore_checked(manager, step, template)
+        return manager, step
+
+    def fields(self, best: bool = False) -> dict[str, bool]:
+        """{name: whether it holds arrays} for the top-level fields of the state in the
+        checkpoint `restore` would read (a field saved as None holds none)."""
+        manager, step = self._step(best)
+        return {name: value is not None
+                for name, value in manager.item_metadata(step).tree.items()}
+
+    def restore(self, template: Any, best: bool = False) -> Any:
+        """The whole checkpoint, in `template`'s structure, shapes and shardings."""
+        manager, step = self._step(best)
+        return restore_checked(manager, step, template, ocp.args.StandardRestore(template))
+
+    def restore_part(self, template: dict, best: bool = False) -> dict:
+        """Only the top-level fields `template` names (e.g. the network parameters), read
+        from a checkpoint that may hold more."""
+        manager, step = self._step(best)
+        args = ocp.args.PyTreeRestore(
+            template, restore_args=ocp.checkpoint_utils.construct_restore_args(template),
+            partial_restore=True)
+        # A reader of its own: a partial restore needs orbax's PyTree handler, which a
+        # manager holding the standard one refuses.
+        reader = ocp.CheckpointManager(manager.directory)
+        try:
+            return restore_checked(reader, step, template, args)
+        finally:
+            reader.close()
 
     def close(self) -> None:
         self.last.close()
         self.best.close()
 
 
-def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any) -> Any:
+def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any,
+                    args: ocp.args.CheckpointArgs) -> Any:
     """Restores into `template`'s structure, turning shape mismatches into one clear line."""
     try:
-        restored = manager.restore(step, args=ocp.args.StandardRestore(template))
+        restored = manager.restore(step, args=args)
     except Exception as err:  # orbax raises many types; the caller needs one message
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise CheckpointError(

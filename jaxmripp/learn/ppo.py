@@ -54,7 +54,8 @@ class Transition:
 
 @struct.dataclass
 class Runner:
-    """What a rollout carries from one update to the next within a chunk."""
+    """The environments between two updates: what a rollout starts from and leaves
+    for the next one (kept across chunks and in checkpoints, `learn.train.TrainState`)."""
 
     env_state: envmod.EnvState  # (E, ...)
     obs: Observation  # (E, N, ...)
