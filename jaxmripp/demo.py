@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp import folders
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.team import exchange, pads
-from jaxmripp.runtime import weights as fmt
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import OnboardPlanner
@@ -46,8 +47,8 @@ def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell
 
 
 def main(argv: list[str] | None = None) -> float:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=None,
                         help="export directory (python -m jaxmripp.export RUN_DIR); "
                              "default: greedy planners")
@@ -82,10 +83,9 @@ def main(argv: list[str] | None = None) -> float:
 
     try:
         cfg = cfgmod.load(args.config)
-        exported = fmt.load(args.export) if args.export is not None else None
-    except (cfgmod.ConfigError, RuntimeInputError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exported = folders.export(args.export) if args.export is not None else None
+    except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError) as err:
+        raise SystemExit(fail(err)) from None
     if exported is not None:
         spec, policy = exported.spec, exported.policy
         spacing = exported.header["config"]["robots"].get("pad_spacing",
@@ -106,8 +106,7 @@ def main(argv: list[str] | None = None) -> float:
                                    sectors=args.sectors, sector_count=args.sector_count)
                     for i in range(n)]
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        raise SystemExit(fail(err)) from None
     world_cfg = dataclasses.replace(cfg.world, size=size, layout=args.layout,
                                     targets=(cfg.world.targets[1],) * 2)
     world = jax.jit(worldmod.generate, static_argnums=1)(jax.random.key(args.seed), world_cfg)

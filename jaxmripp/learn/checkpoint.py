@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -14,18 +16,25 @@ class CheckpointError(RuntimeError):
 
 
 class Checkpoints:
-    """`last/` keeps the newest `keep` chunks, `best/` the one with the highest score."""
+    """`last/` keeps the newest `keep` chunks, `best/` the one with the highest score.
+
+    Opening them writes nothing: the folders are made by the first `save`, so a command
+    that only restores (export, eval, a refused resume) leaves the run folder as it was."""
 
     def __init__(self, directory: str | Path, keep: int):
         directory = Path(directory).absolute()
-        sync = dict(enable_async_checkpointing=False, create=True)
-        self.last = ocp.CheckpointManager(
-            directory / "last", options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync))
-        self.best = ocp.CheckpointManager(
-            directory / "best", options=ocp.CheckpointManagerOptions(
-                max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync))
+        sync = dict(enable_async_checkpointing=False, create=False)
+        with reading(directory):  # opening reads every step's metadata and metrics
+            self.last = ocp.CheckpointManager(
+                directory / "last",
+                options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync))
+            self.best = ocp.CheckpointManager(
+                directory / "best", options=ocp.CheckpointManagerOptions(
+                    max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync))
 
     def save(self, step: int, state: Any, score: float) -> None:
+        for manager in (self.last, self.best):
+            Path(manager.directory).mkdir(parents=True, exist_ok=True)
         self.last.save(step, args=ocp.args.StandardSave(state))
         self.best.save(step, args=ocp.args.StandardSave(state), metrics={"score": float(score)})
         self.last.wait_until_finished()
@@ -46,15 +55,33 @@ class Checkpoints:
         self.best.close()
 
 
+@contextlib.contextmanager
+def reading(directory: Path):
+    """Orbax reports a damaged checkpoint as ERROR log lines and one of many exception
+    types; inside this block the log lines are held back and the exception becomes one
+    CheckpointError line naming `directory`."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    except CheckpointError:
+        raise
+    except Exception as err:  # orbax raises many types; the caller needs one message
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{directory}: cannot restore this checkpoint "
+                              f"({type(err).__name__}: {first[:300]})") from None
+    finally:
+        logger.setLevel(level)
+
+
 def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any) -> Any:
     """Restores into `template`'s structure, turning shape mismatches into one clear line."""
     try:
-        restored = manager.restore(step, args=ocp.args.StandardRestore(template))
-    except Exception as err:  # orbax raises many types; the caller needs one message
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(
-            f"{manager.directory}/{step}: cannot restore into this config's shapes "
-            f"({first[:300]})") from None
+        with reading(Path(manager.directory) / str(step)):
+            restored = manager.restore(step, args=ocp.args.StandardRestore(template))
+    except CheckpointError as err:
+        raise CheckpointError(f"{err} (written with another config or damaged?)") from None
     want = jax.tree.map(lambda x: (x.shape, x.dtype), template)
     got = jax.tree.map(lambda x: (x.shape, x.dtype), restored)
     if want != got:
