@@ -2,6 +2,7 @@
 
     python -m jaxmripp.demo                         # greedy planners, default config
     python -m jaxmripp.demo --export runs/x/export  # the exported policy
+    python -m jaxmripp.demo --export pretrained/default --planner random  # its world, random
 
 The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
 `jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. The robots start on
@@ -32,7 +33,7 @@ from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.team import exchange, pads
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
-from jaxmripp.runtime.planner import OnboardPlanner
+from jaxmripp.runtime.planner import MODES, OnboardPlanner
 from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
 
 
@@ -52,6 +53,9 @@ def main(argv: list[str] | None = None) -> float:
     parser.add_argument("--export", type=Path, default=None,
                         help="export directory (python -m jaxmripp.export RUN_DIR); "
                              "default: greedy planners")
+    parser.add_argument("--planner", choices=MODES, default=None,
+                        help="the runtime's mode on every robot (default: policy with "
+                             "--export, else greedy)")
     parser.add_argument("--config", type=Path, default=None,
                         help="config for the world and, without --export, the planners")
     parser.add_argument("--robots", type=int, default=None, help="team size (default: config)")
@@ -103,6 +107,7 @@ def main(argv: list[str] | None = None) -> float:
     try:
         planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
                                    lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
+                                   mode=args.planner,
                                    sectors=args.sectors, sector_count=args.sector_count)
                     for i in range(n)]
     except ValueError as err:

@@ -14,9 +14,10 @@ metadata.json, every figure of which is read from a file a command wrote:
     updates, agent_steps, training_discovered   metrics.jsonl's last record
     evaluations          per result FILE (the JSON lines benchmarks/quality.py or
                          benchmarks/scale.py --eval print): its path, the command that
-                         printed it, the rules it evaluated under (its `*.rules` line, or
-                         the sweep's `eval` settings in the summary.json written beside it)
-                         and its figures
+                         printed it and the rules it evaluated under (its `*.command`
+                         and `*.rules` lines; for a file printed before those, the command
+                         and the sweep's `eval` settings its --out wrote beside it in
+                         results.md and summary.json) and its figures
 
 --metadata rewrites FOLDER/metadata.json of a shipped folder from the folder's own files
 (metrics.jsonl, config.yaml, policy.json) and the result files, and writes nothing else.
@@ -71,26 +72,43 @@ def read_results(path: Path) -> dict:
             name, value = record["name"], record["value"]
         except (json.JSONDecodeError, TypeError, KeyError):
             raise ShipError(f"--results {path}: line {number} is not a benchmark figure "
-                             '(a JSON object with "name" and "value")') from None
+                            '(a JSON object with "name" and "value")') from None
         if name.endswith(".command"):
             command = value
         elif name.endswith(".rules"):
             rules = value
         elif not name.endswith(NOT_FIGURES):
             figures[name] = value
+    if command is None or rules is None:  # printed before the lines that name them
+        beside = written_beside(path)
+        command, rules = command or beside[0], rules or beside[1]
+    missing = [what for what, value in (
+        ("command (a *.command line, or results.md beside it)", command),
+        ("rules (a *.rules line, or summary.json beside it)", rules),
+        ("figures", figures)) if not value]
+    if missing:
+        raise ShipError(f"--results {path}: no {', no '.join(missing)}; allowed: the output "
+                        "of benchmarks/quality.py or benchmarks/scale.py --eval")
+    return {"results": str(path), "command": command, "rules": rules, "figures": figures}
+
+
+def written_beside(path: Path) -> tuple[str | None, dict | None]:
+    """What an evaluation run with --out wrote beside its JSON lines: its command (the
+    "Command:" line of results.md) and its sweep's settings (summary.json's "eval");
+    None for what is not there."""
+    command = rules = None
+    table = path.parent / "results.md"
+    if table.is_file():
+        command = next((line.strip()[len("Command: `"):-1] for line in
+                        table.read_text().splitlines() if line.startswith("Command: `")), None)
     summary = path.parent / "summary.json"
-    if rules is None and summary.is_file():  # quality.py --out wrote the sweep's settings
+    if summary.is_file():
         try:
             rules = {"eval": json.loads(summary.read_text())["eval"]}
         except (json.JSONDecodeError, KeyError, TypeError):
             raise ShipError(f"{summary}: not an evaluation summary (no 'eval' settings)"
                             ) from None
-    missing = [what for what, value in (("a *.command line", command), ("rules (a *.rules "
-               "line or a summary.json beside it)", rules), ("figures", figures)) if not value]
-    if missing:
-        raise ShipError(f"--results {path}: no {', no '.join(missing)}; allowed: the output "
-                         "of benchmarks/quality.py or benchmarks/scale.py --eval")
-    return {"results": str(path), "command": command, "rules": rules, "figures": figures}
+    return command, rules
 
 
 def training_command(cfg: cfgmod.Config, shipped_config: Path) -> str:
