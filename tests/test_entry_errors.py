@@ -123,6 +123,11 @@ def test_ship_refuses_anything_but_a_run_and_leaves_its_target_alone(bad, capsys
 
 
 def test_ship_refuses_a_target_of_other_files_and_a_metadata_rewrite_of_a_run(bad, capsys):
+    run = str(bad["corrupt_checkpoint"])
+    line = unchanged(bad, capsys, lambda: ship.main([run, str(bad["config_only"])]))
+    assert "holds other files; allowed: a new or empty folder, or a shipped folder" in line
+    line = unchanged(bad, capsys, lambda: ship.main([run, run]))
+    assert "the run itself" in line
     line = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["corrupt_checkpoint"])]))
     assert "a training run, not an export" in line
     line = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["corrupt_npz"])]))
