@@ -119,7 +119,6 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     from jaxmripp import folders
     from jaxmripp.config import ConfigError
-    from jaxmripp.runtime.errors import RuntimeInputError
 
     try:  # before importing the trainer: a folder of another kind fails at once
         folders.training_run(args.run_dir, args.best)
@@ -129,8 +128,10 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         npz, header_path = export_run(args.run_dir, args.best, args.out)
-    except (ConfigError, CheckpointError, ExportError, RuntimeInputError) as err:
+    except (ConfigError, folders.FolderError, CheckpointError, ExportError) as err:
         return fail(err)
+    except OSError as err:  # --out not writable
+        return fail(f"{err.filename or args.out}: cannot write ({err.strerror or err})")
     print(f"wrote {npz} and {header_path}")
     return 0
 
