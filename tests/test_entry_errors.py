@@ -75,24 +75,25 @@ def snapshot(root: Path) -> dict[str, str]:
             for p in sorted(root.rglob("*"))}
 
 
-def refused(capsys, run) -> str:
+def refused(capsys, run) -> tuple[str, str]:
     """Runs `run()` (an entry point's main) and checks the convention: status 2, stderr
-    exactly one line `error: ...`; returns that line."""
+    exactly one line `error: ...`; returns that line and stdout."""
     try:
         status = run()
     except SystemExit as exit_:  # python -m jaxmripp.demo ends with SystemExit
         status = exit_.code
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
     assert status == 2, err
     assert err.startswith("error: ") and err.count("\n") == 1, err
-    return err.strip()
+    return err.strip(), out
 
 
-def unchanged(bad, capsys, run) -> str:
+def unchanged(bad, capsys, run) -> tuple[str, str]:
+    """`refused`, with every folder under bad["root"] as it was before."""
     before = snapshot(bad["root"])
-    line = refused(capsys, run)
+    refusal = refused(capsys, run)
     assert snapshot(bad["root"]) == before
-    return line
+    return refusal
 
 
 # What each entry point needs, and the folders that are not that.
@@ -109,7 +110,7 @@ WORDS = {"missing": "no such folder", "empty": "an empty folder",
 def test_export_refuses_anything_but_a_run_with_a_checkpoint(bad, capsys, kind):
     """The shipped folder is the reported case: export used to leave empty
     checkpoints/best and checkpoints/last behind, which made it look like a run."""
-    line = unchanged(bad, capsys, lambda: export.main([str(bad[kind])]))
+    line, _ = unchanged(bad, capsys, lambda: export.main([str(bad[kind])]))
     expected = "an export, not a training run" if kind == "corrupt_npz" else WORDS[kind]
     assert expected in line
 
@@ -117,29 +118,29 @@ def test_export_refuses_anything_but_a_run_with_a_checkpoint(bad, capsys, kind):
 @pytest.mark.parametrize("kind", NOT_A_RUN)
 def test_ship_refuses_anything_but_a_run_and_leaves_its_target_alone(bad, capsys, kind):
     # The target is an existing shipped folder: a refused ship must not touch it either.
-    line = unchanged(bad, capsys, lambda: ship.main([str(bad[kind]), str(bad["shipped"])]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main([str(bad[kind]), str(bad["shipped"])]))
     if kind != "shipped":  # shipping a folder onto itself: refused as not a run first
         assert (WORDS["shipped"] if kind == "corrupt_npz" else WORDS[kind]) in line
 
 
 def test_ship_refuses_a_target_of_other_files_and_a_metadata_rewrite_of_a_run(bad, capsys):
     run = str(bad["corrupt_checkpoint"])
-    line = unchanged(bad, capsys, lambda: ship.main([run, str(bad["config_only"])]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main([run, str(bad["config_only"])]))
     assert "holds other files; allowed: a new or empty folder, or a shipped folder" in line
-    line = unchanged(bad, capsys, lambda: ship.main([run, run]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main([run, run]))
     assert "the run itself" in line
-    line = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["corrupt_checkpoint"])]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main(["--metadata", run]))
     assert "a training run, not an export" in line
-    line = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["corrupt_npz"])]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["corrupt_npz"])]))
     assert "policy.npz" in line
-    line = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["shipped"]),
-                                                     "--results", str(SMOKE)]))
+    line, _ = unchanged(bad, capsys, lambda: ship.main(["--metadata", str(bad["shipped"]),
+                                                       "--results", str(SMOKE)]))
     assert "line 1 is not a benchmark figure" in line
 
 
 @pytest.mark.parametrize("kind", NOT_A_POLICY)
 def test_eval_refuses_a_policy_folder_of_no_kind_or_corrupt(bad, capsys, kind):
-    line = unchanged(bad, capsys, lambda: eval_cli.main([
+    line, _ = unchanged(bad, capsys, lambda: eval_cli.main([
         "--config", str(SMOKE), "--policy", f"mine={bad[kind]}", "--out",
         str(bad["root"] / "missing"), "--no-render"]))
     assert line.startswith("error: --policy mine: ") and WORDS[kind] in line
@@ -150,7 +151,7 @@ def test_train_resume_refuses_anything_but_a_run_with_a_checkpoint(bad, capsys, 
     """Resuming a shipped folder used to train afresh into it, overwriting its
     config.yaml and metrics.jsonl."""
     runs = bad["root"] / "missing"  # a new run would create it
-    line = unchanged(bad, capsys, lambda: train_cli.main(
+    line, _ = unchanged(bad, capsys, lambda: train_cli.main(
         ["--resume", str(bad[kind]), "--runs", str(runs), "--no-eval"]))
     expected = "an export, not a training run" if kind == "corrupt_npz" else WORDS[kind]
     assert expected in line
@@ -159,11 +160,11 @@ def test_train_resume_refuses_anything_but_a_run_with_a_checkpoint(bad, capsys, 
 @pytest.mark.parametrize("kind", NOT_A_POLICY)
 def test_train_init_from_refuses_before_choosing_a_run_folder(bad, capsys, kind):
     runs = bad["root"] / "missing"
-    line = unchanged(bad, capsys, lambda: train_cli.main(
+    line, out = unchanged(bad, capsys, lambda: train_cli.main(
         ["--config", str(SMOKE), "--runs", str(runs), "--no-eval",
          f"train.init_from={bad[kind]}"]))
     assert line.startswith("error: train.init_from: ") and WORDS[kind] in line
-    assert "run folder" not in capsys.readouterr().out
+    assert "run folder" not in out
 
 
 @pytest.mark.parametrize("kind", NOT_AN_EXPORT)
@@ -171,7 +172,7 @@ def test_flight_and_demo_refuse_anything_but_an_intact_export(bad, capsys, kind)
     out = bad["root"] / "missing"
     unchanged(bad, capsys, lambda: flight.main(["--export", str(bad[kind]), "--out", str(out),
                                                 "--no-pictures"]))
-    line = unchanged(bad, capsys, lambda: demo.main(["--export", str(bad[kind]), "--quiet"]))
+    line, _ = unchanged(bad, capsys, lambda: demo.main(["--export", str(bad[kind]), "--quiet"]))
     expected = {"corrupt_checkpoint": "a training run, not an export (export it: python -m "
                                       "jaxmripp.export RUN_DIR)"}.get(kind, WORDS[kind])
     assert expected in line
@@ -179,14 +180,14 @@ def test_flight_and_demo_refuse_anything_but_an_intact_export(bad, capsys, kind)
 
 @pytest.mark.parametrize("kind", NOT_A_POLICY)
 def test_a_benchmark_refuses_a_policy_folder_of_no_kind_or_corrupt(bad, capsys, kind):
-    line = unchanged(bad, capsys, lambda: quality.main(
+    line, _ = unchanged(bad, capsys, lambda: quality.main(
         ["--policy", str(bad[kind]), "--worlds", "1", "--trials", "1", "--planners", "policy",
          "--set", "world.size=20"]))
     assert WORDS[kind] in line
 
 
 def test_usage_mistakes_are_one_line_too(bad, capsys):
-    line = unchanged(bad, capsys, lambda: export.main([str(bad["shipped"]), "--bogus"]))
+    line, _ = unchanged(bad, capsys, lambda: export.main([str(bad["shipped"]), "--bogus"]))
     assert line == ("error: unrecognized arguments: --bogus; allowed: see "
                     "python -m jaxmripp.export --help")
     unchanged(bad, capsys, lambda: ship.main([str(bad["shipped"])]))
