@@ -33,9 +33,10 @@ def trained_params(source: str | Path, cfg: Config | None = None, best: bool = F
     e.g. pretrained/default). Raises FolderError for a folder of neither kind,
     RuntimeInputError for a corrupt export, CheckpointError for an unreadable checkpoint."""
     source = Path(source)
-    if folders.policy(source, best, with_config=False) == "run":
-        run_cfg = cfg if cfg is not None else cfgmod.load(source / "config.yaml")
+    if folders.is_training_run(source):
+        run_cfg = cfg if cfg is not None else folders.training_run(source, best)
         return trainmod.restore(run_cfg, source, best=best).params
+    folders.policy(source, best, with_config=False)  # neither kind: FolderError
     return policymod.unflatten_params(weights_format.load(source).weights)
 
 
