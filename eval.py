@@ -15,7 +15,10 @@ from pathlib import Path
 
 from jaxmripp import allocator
 from jaxmripp import config as cfgmod
+from jaxmripp import folders
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.parallel import launch
+from jaxmripp.runtime.errors import RuntimeInputError
 
 
 def parse_policy(text: str) -> tuple[str, Path]:
@@ -26,8 +29,8 @@ def parse_policy(text: str) -> tuple[str, Path]:
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--config", default="configs/eval_paper.yaml")
     parser.add_argument("--policy", action="append", default=[], metavar="NAME=RUN_DIR",
                         help="a trained run to evaluate under NAME (repeatable)")
@@ -44,31 +47,36 @@ def main(argv=None) -> int:
     try:
         cfg = cfgmod.load(args.config, args.overrides)
         policies = [parse_policy(p) for p in args.policy]
-        for name, run_dir in policies:
-            if not (run_dir / "config.yaml").is_file():
-                raise cfgmod.ConfigError(f"--policy {name}={run_dir}: no config.yaml there")
         if len({n for n, _ in policies}) != len(policies):
             raise cfgmod.ConfigError("--policy: names must be distinct (NAME=RUN_DIR)")
+        for name, run_dir in policies:  # by their files, before anything starts
+            try:
+                folders.policy(run_dir, best=args.best)
+            except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError) as err:
+                raise cfgmod.ConfigError(f"--policy {name}: {err}") from None
         launch.initialize(launch.from_arguments(args))
     except (cfgmod.ConfigError, launch.LaunchError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(err)
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415 (after argument errors)
+    from jaxmripp.learn.checkpoint import CheckpointError  # noqa: PLC0415
     from jaxmripp.parallel.mesh import is_main_process  # noqa: PLC0415
 
     say = print if is_main_process() else (lambda *_: None)
 
+    planners = {}
     try:
         cfg = pipeline.with_policy_inputs(cfg, [run_dir for _, run_dir in policies])
+        for name, run_dir in policies:
+            try:
+                planners[name] = pipeline.sweep_planner(run_dir, cfg, name, best=args.best,
+                                                        log=say)
+            except CheckpointError as err:
+                raise cfgmod.ConfigError(f"--policy {name}: {err}") from None
+            say(f"policy {name}: {run_dir}")
     except cfgmod.ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
-    planners = {}
-    for name, run_dir in policies:
-        planners[name] = pipeline.sweep_planner(run_dir, cfg, name, best=args.best, log=say)
-        say(f"policy {name}: {run_dir}")
+        return fail(err)
     out = Path(args.out) if args.out else pipeline.eval_dir(
         args.config, [run_dir for _, run_dir in policies])
     render = not args.no_render and sweep.eval_setting(cfg, "render")

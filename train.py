@@ -1,19 +1,20 @@
 """Train a policy: `python train.py --config configs/default.yaml [section.key=value ...]`."""
 
-import argparse
 import sys
 from pathlib import Path
 
 from jaxmripp import allocator
 from jaxmripp import config as cfgmod
-from jaxmripp import pipeline
+from jaxmripp import folders, pipeline
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.learn import train as trainmod
+from jaxmripp.learn.checkpoint import CheckpointError
 from jaxmripp.parallel import launch
 from jaxmripp.parallel.mesh import ShardingError, is_main_process
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = ArgumentParser(description=__doc__)
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--resume", metavar="RUN_DIR",
                         help="continue this run from its last checkpoint; overrides may change "
@@ -33,10 +34,13 @@ def main(argv=None) -> int:
     try:
         if args.resume:
             run_dir = Path(args.resume)
+            folders.training_run(run_dir)  # a checkpoint to continue, before any write
             cfg = cfgmod.load(run_dir / "config.yaml", args.overrides)
         else:
             cfg = cfgmod.load(args.config, args.overrides)
+            pipeline.check_initial_params(cfg)  # its files, before JAX starts
         launch.initialize(launch.from_arguments(args))
+        initial_params = None if args.resume else pipeline.initial_params(cfg)
         if not args.resume:  # every process picks the folder before any creates it
             run_dir = trainmod.fresh_run_dir(Path(args.runs), cfg.train.name)
             launch.barrier("run folder chosen")
@@ -44,10 +48,10 @@ def main(argv=None) -> int:
         say(f"run folder: {run_dir}")
         state = trainmod.train(cfg, run_dir, resume=bool(args.resume),
                                stop_after_chunks=args.stop_after_chunks, log=say,
-                               initial_params=pipeline.initial_params(cfg), quiet=args.quiet)
-    except (cfgmod.ConfigError, launch.LaunchError, ShardingError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+                               initial_params=initial_params, quiet=args.quiet)
+    except (cfgmod.ConfigError, folders.FolderError, CheckpointError, launch.LaunchError,
+            ShardingError) as err:
+        return fail(err)
     finished = int(state.update) >= cfg.train.updates
     if finished and not args.no_eval:
         pipeline.report(cfg, run_dir, log=say)

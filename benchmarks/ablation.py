@@ -47,7 +47,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit, emit_p  # noqa: E402
+from common import ArgumentParser, emit, emit_p, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
 VARIANTS = {
@@ -97,8 +97,8 @@ def train_variant(cfg, run_dir: Path) -> float:
 
 
 def parse_args(argv):
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
     parser.add_argument("--seeds", type=int, default=2)
     parser.add_argument("--updates", type=int, help="default: the training config's")
@@ -118,6 +118,7 @@ def parse_args(argv):
     return args
 
 
+@entry_point
 def main(argv=None) -> int:
     args = parse_args(argv)
     train_path, eval_path, preset_updates, preset_overrides = PRESETS[args.preset]

@@ -26,14 +26,15 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import jax  # noqa: E402
 
-from common import emit  # noqa: E402
+from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
 
 
+@entry_point
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--blocks", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=5)
     parser.add_argument("--config", default="configs/default.yaml")

@@ -1,4 +1,5 @@
-"""Helpers for benchmark scripts: median timing and JSON-line output.
+"""Helpers for benchmark scripts: median timing, JSON-line output and the entry points'
+error convention.
 
 Importing this module makes the process keep freed memory for reuse, as train.py and
 eval.py do (jaxmripp.allocator), so benchmarks time what training runs.
@@ -6,7 +7,6 @@ eval.py do (jaxmripp.allocator), so benchmarks time what training runs.
 
 from __future__ import annotations
 
-import argparse
 import functools
 import importlib
 import statistics
@@ -18,9 +18,34 @@ import jax
 
 import figures
 from jaxmripp import allocator
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.sim.xla_options import simulation_jit
 
 allocator.keep_freed_memory()
+
+
+def user_errors() -> tuple[type[Exception], ...]:
+    """What a user or a file can get wrong: a config value, a folder of the wrong kind, a
+    corrupt export or checkpoint."""
+    from jaxmripp import folders  # noqa: PLC0415 (orbax only when a main runs)
+    from jaxmripp.config import ConfigError  # noqa: PLC0415
+    from jaxmripp.learn.checkpoint import CheckpointError  # noqa: PLC0415
+    from jaxmripp.runtime.errors import RuntimeInputError  # noqa: PLC0415
+
+    return ConfigError, folders.FolderError, RuntimeInputError, CheckpointError
+
+
+def entry_point(main: Callable[..., int | None]) -> Callable[..., int]:
+    """A benchmark's main with the entry points' convention (jaxmripp.config.cli): a
+    `user_errors()` exception becomes one line `error: ...` and exit status 2; it returns
+    0 where main returned None."""
+    @functools.wraps(main)
+    def guarded(*args, **kwargs) -> int:
+        try:
+            return main(*args, **kwargs) or 0
+        except user_errors() as err:
+            return fail(err)
+    return guarded
 
 
 @functools.cache
@@ -43,8 +68,9 @@ def emit_p(name: str, p: float) -> None:
     sys.stdout.flush()
 
 
-def emit_text(name: str, text: str) -> None:
-    """Prints a line whose value is a string (a planner's name, a command)."""
+def emit_text(name: str, text: Any) -> None:
+    """Prints a line whose value is not a number (a planner's name, a command, a mapping
+    of settings)."""
     print(figures.line(name, text, device=machine()))
     sys.stdout.flush()
 
@@ -72,9 +98,9 @@ def median_cpu_seconds(fn: Callable[[], Any], repeats: int = 5) -> float:
     return statistics.median(times)
 
 
-def batch_arguments(description: str) -> argparse.ArgumentParser:
+def batch_arguments(description: str) -> ArgumentParser:
     """The batch-shape options shared by the environment-side benchmarks."""
-    parser = argparse.ArgumentParser(description=description)
+    parser = ArgumentParser(description=description)
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--robots", type=int, default=3)
     parser.add_argument("--size", type=int, default=50)

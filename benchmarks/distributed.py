@@ -26,15 +26,16 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit  # noqa: E402
+from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 
 SMALL = ["train.envs=32", "train.updates=4", "train.updates_per_chunk=1", "ppo.minibatches=4"]
 
 
+@entry_point
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--blocks", type=int, help="train.blocks (default: --processes)")
     parser.add_argument("--config", default="configs/default.yaml")

@@ -34,7 +34,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import RandomTeamStepper, batch_arguments, emit, median_seconds  # noqa: E402
+from common import (RandomTeamStepper, batch_arguments, emit, entry_point,  # noqa: E402
+                    median_seconds)
 from jaxmripp import config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, maps, sensing, view  # noqa: E402
 from jaxmripp.sim import xla_options  # noqa: E402
@@ -50,6 +51,7 @@ def build(args):
     return EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
 
 
+@entry_point
 def main() -> None:
     parser = batch_arguments(__doc__)
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
@@ -158,4 +160,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -19,7 +19,6 @@ Usage (from the repository root):
 
 from __future__ import annotations
 
-import argparse
 import importlib
 import io
 import os
@@ -36,7 +35,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import jax  # noqa: E402
 
-from common import RandomTeamStepper, emit  # noqa: E402
+from common import ArgumentParser, RandomTeamStepper, emit, entry_point  # noqa: E402
 
 _BASE_PACKAGE = "jaxmripp_base"
 
@@ -73,8 +72,9 @@ def build_stepper(package: str, overrides: list[str], envs: int) -> RandomTeamSt
                              params_mod.DynamicParams.from_config(cfg), envs, package=package)
 
 
+@entry_point
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--base", required=True, help="the commit to compare against")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--rounds", type=int, default=4)
@@ -122,4 +122,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -30,13 +30,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
 
-from common import emit  # noqa: E402
+from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS  # noqa: E402
 
 
+@entry_point
 def main(argv=None) -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=Path("pretrained/default"))
     parser.add_argument("--worlds", type=int, default=5)
     parser.add_argument("--first-seed", type=int, default=100)
@@ -95,4 +96,4 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -15,7 +15,6 @@ Usage (from the repository root): python benchmarks/gp.py [--eval-grid 4]
 
 from __future__ import annotations
 
-import argparse
 import itertools
 import statistics
 import sys
@@ -29,7 +28,7 @@ from jax.scipy.linalg import solve_triangular
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common import emit, median_seconds  # noqa: E402
+from common import ArgumentParser, emit, entry_point, median_seconds  # noqa: E402
 
 from jaxmripp.sim import gp  # noqa: E402
 from jaxmripp.config import GPConfig  # noqa: E402
@@ -106,8 +105,9 @@ def runner(step, state, inputs, eval_poses, cfg):
     return run, jax.device_get(run())
 
 
+@entry_point
 def main():
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = ArgumentParser(description=__doc__)
     parser.add_argument("--eval-grid", type=int, default=GPConfig().eval_grid,
                         help="trace evaluation set: eval_grid^3 positions x 4 headings")
     cfg = GPConfig(eval_grid=parser.parse_args().eval_grid)
@@ -152,4 +152,4 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

@@ -16,12 +16,18 @@ Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's
     quality.policy_vs_best_p         Welch's two-sided p-value of that difference
     quality.oracle_pct               the oracle at rho = inf
     quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
-    quality.train_minutes            the policy's training wall time (its metadata.json)
+    quality.train_minutes            the policy's training time (its metrics.jsonl)
     quality.pct.<planner>.rho<r>     every planner and range
+
+and quality.command and quality.rules (the preset, its overrides, the policy, the
+worlds, trials and seed), which `python -m jaxmripp.ship` records beside the figures.
+With --planners, the figures that need the planners left out (the best baseline, the
+oracle) are not printed.
 
 Usage (from the repository root):
     python benchmarks/quality.py [--policy DIR] [--preset default|paper] [--worlds 25]
-                                 [--trials 10] [--out DIR] [--set key=value ...]
+                                 [--trials 10] [--planners policy,...] [--out DIR]
+                                 [--set key=value ...]
 --policy defaults to pretrained/<preset>; without one there, only the baselines run.
 --out also writes the evaluation tables and plots (results.md, ...) there.
 """
@@ -29,7 +35,6 @@ Usage (from the repository root):
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import sys
@@ -38,53 +43,55 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import emit, emit_p, emit_text  # noqa: E402
-from jaxmripp import config as cfgmod  # noqa: E402
+from common import ArgumentParser, emit, emit_p, emit_text, entry_point  # noqa: E402
+from jaxmripp import config as cfgmod, folders  # noqa: E402
 
 PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
 BASELINES = ("nbv_ahead", "nbv_team", "nbv", "coordinated", "greedy", "mcts", "rig", "random")
 REFERENCES = ("oracle",)
 
 
+@entry_point
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", type=Path, help="default: pretrained/<preset>")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
     parser.add_argument("--worlds", type=int, default=25)
     parser.add_argument("--trials", type=int, default=10)
+    parser.add_argument("--planners", help="comma-separated subset (default: all)")
     parser.add_argument("--out", type=Path, help="also write tables and plots here")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
     policy = args.policy or Path("pretrained") / args.preset
-    if args.policy and not (policy / "config.yaml").is_file():
-        print(f"error: --policy {policy}: no config.yaml there", file=sys.stderr)
-        return 2
-    has_policy = (policy / "config.yaml").is_file()
-    planners = (["policy"] if has_policy else []) + list(BASELINES) + list(REFERENCES)
+    if args.policy:  # a folder of another kind or a corrupt export fails here, in one line
+        folders.policy(policy)
+    has_policy = args.policy is not None or folders.is_export(policy) or (
+        folders.is_training_run(policy))
+    everything = (["policy"] if has_policy else []) + list(BASELINES) + list(REFERENCES)
+    planners = args.planners.split(",") if args.planners else everything
+    unknown = [name for name in planners if name not in everything]
+    if unknown:
+        parser.error(f"--planners: {','.join(unknown)} unknown; allowed: "
+                     f"{','.join(everything)}")
     overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",
                  "eval.radio_ranges=[.inf, 0.1]", "eval.budgets=[10.0]",
                  "eval.budget_mode=team", f"eval.worlds={args.worlds}",
                  f"eval.trials={args.trials}", "eval.layout=random", "eval.pairs=[]", *args.set]
-    try:
-        cfg = cfgmod.load(PRESETS[args.preset], overrides)
-    except cfgmod.ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+    cfg = cfgmod.load(PRESETS[args.preset], overrides)
     missing = [name for name in planners if name not in cfg.eval.planners]
     missing += [f"rho = {rho:g}" for rho in (math.inf, 0.1) if rho not in cfg.eval.radio_ranges]
     if missing:
-        print(f"error: --set: the figures need {', '.join(missing)} in the sweep "
-              f"(eval.planners must include {', '.join(planners)}; eval.radio_ranges "
-              f"inf and 0.1)", file=sys.stderr)
-        return 2
+        parser.error(f"--set: the figures need {', '.join(missing)} in the sweep "
+                     f"(eval.planners must include {', '.join(planners)}; eval.radio_ranges "
+                     "inf and 0.1)")
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
     from jaxmripp.evaluation.stats import welch_ttest  # noqa: PLC0415
 
     policies = {}
-    if has_policy:
+    if "policy" in planners:
         cfg = pipeline.with_policy_inputs(cfg, [policy])
         policies["policy"] = pipeline.sweep_planner(
             policy, cfg, log=lambda line: print(line, file=sys.stderr))
@@ -92,32 +99,39 @@ def main(argv=None) -> int:
                              time_planning=False, keep_pictures=False)
     command = "python benchmarks/quality.py " + " ".join(argv or sys.argv[1:])
     emit_text("quality.command", command)  # for jaxmripp.ship
+    emit_text("quality.rules", {  # what the figures were measured under
+        "config": PRESETS[args.preset], "overrides": overrides,
+        "policy": str(policy) if "policy" in planners else None,
+        "worlds": cfg.eval.worlds, "trials": cfg.eval.trials, "seed": cfg.eval.seed})
     if args.out:
         outputs.write_outputs(result, args.out, cfg, render=True, gif=False, command=command)
     found = {(r.planner, r.shape.radio_range): r.discovered for r in result.runs}
     pct = {key: float(value.mean()) for key, value in found.items()}
     for (name, rho), value in pct.items():
         emit(f"quality.pct.{name}.rho{rho:g}", value, "%")
-    best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
-    emit("quality.best_baseline_pct", pct[(best, math.inf)], "%")
-    emit_text("quality.best_baseline", best)
-    emit("quality.oracle_pct", pct[("oracle", math.inf)], "%")
+    best = None
+    if set(BASELINES) <= set(planners):
+        best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
+        emit("quality.best_baseline_pct", pct[(best, math.inf)], "%")
+        emit_text("quality.best_baseline", best)
+    if "oracle" in planners:
+        emit("quality.oracle_pct", pct[("oracle", math.inf)], "%")
     episodes = sum(len(r.discovered) for r in result.runs)
     collisions = sum(int(r.safety[key].sum()) for r in result.runs
                      for key in ("obstacle_collisions", "robot_collisions_in_range"))
     emit("quality.collisions_per_episode", collisions / episodes, "collisions/episode",
          episodes=episodes)
-    if has_policy:
+    if "policy" in planners:
         emit("quality.policy_pct", pct[("policy", math.inf)], "%")
         emit("quality.policy_pct_rho01", pct[("policy", 0.1)], "%")
-        emit("quality.policy_vs_best_baseline",
-             pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
-        p_value = welch_ttest(found[("policy", math.inf)], found[(best, math.inf)])[2]
-        emit_p("quality.policy_vs_best_p", p_value)
-        metadata = policy / "metadata.json"
-        if metadata.is_file():
-            emit("quality.train_minutes", json.loads(metadata.read_text())["train_minutes"],
-                 "min")
+        if best is not None:
+            emit("quality.policy_vs_best_baseline",
+                 pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
+            p_value = welch_ttest(found[("policy", math.inf)], found[(best, math.inf)])[2]
+            emit_p("quality.policy_vs_best_p", p_value)
+        minutes = folders.train_minutes(policy)
+        if minutes is not None:
+            emit("quality.train_minutes", minutes, "min")
     return 0
 
 

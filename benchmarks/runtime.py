@@ -44,6 +44,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import figures  # noqa: E402
 
 from jaxmripp.config import Config  # noqa: E402  (pure Python: no jax)
+from jaxmripp.config.cli import ArgumentParser  # noqa: E402
 from jaxmripp.runtime import ROBOT_STATE, NumpyPolicy, OnboardPlanner  # noqa: E402
 from jaxmripp.runtime import weights as fmt  # noqa: E402
 from jaxmripp.demo import fly  # noqa: E402  (imports jax only inside main)
@@ -191,8 +192,8 @@ def episode(spec, policy, seed: int, mode: str):
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--ahead-branches", type=int, default=0,
                         help="candidates the lookahead input follows (0: no such input)")
     args = parser.parse_args()

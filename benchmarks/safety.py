@@ -29,20 +29,23 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
 
-from common import emit  # noqa: E402
-from jaxmripp import config as cfgmod  # noqa: E402
+from common import ArgumentParser, emit, entry_point  # noqa: E402
+from jaxmripp import config as cfgmod, folders  # noqa: E402
 
 RANGES = (0.3, 0.1)
 BASELINES = ("random", "greedy", "coordinated")
 
 
+@entry_point
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", type=Path, help="a trained run directory")
     parser.add_argument("--worlds", type=int, default=50)
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
+    if args.policy:  # a folder of another kind or a corrupt export fails here, in one line
+        folders.policy(args.policy)
     base = args.policy / "config.yaml" if args.policy else "configs/default.yaml"
     planners = (["policy"] if args.policy else []) + list(BASELINES)
     overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",

@@ -12,7 +12,10 @@ envs x N agent-steps. Figures (JSON lines):
 With --eval, the largest team then plays the cell the paper lost (16x world, N = 64,
 rho = 0.12, per-robot budget 10 / 3) on W held-out random-layout worlds: the policy with
 single-hop exchange and with relay at rho, and the policy, coordinated, nbv and nbv_team
-with global communication (rho = inf: everyone hears everyone every step). Figures:
+with global communication (rho = inf: everyone hears everyone every step); --no-timing
+skips the timing. Every evaluating mode first prints scale.command and scale.rules (the
+policy and the overrides each sweep loads its config.yaml with), which `python -m
+jaxmripp.ship` records beside the figures. Figures:
 
     scale.pct.<planner>.<single_hop|relay|global>   mean % of windows found (95% CI)
     scale.relay_vs_best_global_<R>x   relay over the best planner with global
@@ -67,10 +70,12 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from pathlib import Path  # noqa: E402
 
-from common import RandomTeamStepper, emit, emit_p, median_seconds  # noqa: E402
+from common import (ArgumentParser, RandomTeamStepper, emit, emit_p, emit_text,  # noqa: E402
+                    entry_point, median_seconds)
+from jaxmripp.config.cli import fail  # noqa: E402
 from scale_report import (PAIRS, PAPER_RADIO, PLANNERS, grid_tables, plot_grid,  # noqa: E402
                           plot_ranges, read_grid)
-from jaxmripp import config  # noqa: E402
+from jaxmripp import config, folders  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
@@ -78,19 +83,19 @@ class UsageError(ValueError):
     """Arguments the script cannot run with: main prints the message and exits with 2."""
 
 
+@entry_point
 def main(argv=None) -> int:
     args = _parser().parse_args(argv)
     try:
-        _run(args)
-    except (UsageError, config.ConfigError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        _run(args, argv)
+    except UsageError as err:
+        return fail(err)
     return 0
 
 
-def _parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+def _parser() -> ArgumentParser:
+    parser = ArgumentParser(description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--teams", default="3,16,32,64")
     parser.add_argument("--size", type=int, default=125)
     parser.add_argument("--radio-range", type=float, default=0.12)
@@ -98,6 +103,8 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
     parser.add_argument("--eval", action="store_true", help="also evaluate the largest team")
+    parser.add_argument("--no-timing", action="store_true",
+                        help="with --eval: the evaluation only, without the timing")
     parser.add_argument("--worlds", type=int, default=4, help="worlds of the --eval cell")
     parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
                         help="trained run or shipped folder for --eval, --grid and --ranges")
@@ -123,7 +130,7 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _run(args) -> None:
+def _run(args, argv=None) -> None:
     if args.collected is not None:
         missing = [str(path) for path in args.collected if not path.is_file()]
         if missing:
@@ -140,13 +147,13 @@ def _run(args) -> None:
             plot_grid(grid, sizes, args.figure)
         return
     evaluates = args.eval or args.grid or args.ranges is not None
-    if evaluates and not (args.policy / "config.yaml").is_file():
-        raise UsageError(f"--policy {args.policy}: no config.yaml there")
+    if evaluates:  # a folder of another kind or a corrupt export fails here, in one line
+        folders.policy(args.policy)
     exchanges, global_planners, range_planners = _planner_lists(args)
     if args.ranges is not None:
         evaluate_ranges(args.policy, max(int(n) for n in args.teams.split(",")), args.size,
                         _radio_ranges(args.ranges, range_planners), args.worlds, args.set,
-                        args.figure, exchanges, global_planners, range_planners)
+                        args.figure, exchanges, global_planners, range_planners, argv)
     elif args.grid:
         sizes = [int(g) for g in args.world_sizes.split(",")]
         unknown = sorted(set(sizes) - set(PAPER_RADIO))
@@ -155,12 +162,13 @@ def _run(args) -> None:
                              "paper's worlds, each with its radio range)")
         evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
                       args.worlds, args.set, args.figure, exchanges, global_planners,
-                      range_planners)
+                      range_planners, argv)
     else:
-        largest = time_teams(sorted(int(n) for n in args.teams.split(",")), args)
+        teams = sorted(int(n) for n in args.teams.split(","))
+        largest = max(teams) if args.eval and args.no_timing else time_teams(teams, args)
         if args.eval:
             evaluate_cell(args.policy, largest, args.size, args.radio_range, args.worlds,
-                          args.set, args.figure)
+                          args.set, args.figure, argv)
 
 
 def _planner_lists(args) -> tuple[list[str], list[str], list[str]]:
@@ -221,16 +229,13 @@ EXCHANGES = ("global", "single_hop", "relay")
 RANGE_PLANNERS = ("policy",)  # those evaluated at the short range unless --range-planners
 
 
-def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_ranges: list[float],
-                    worlds: int, overrides: list[str], exchanges=EXCHANGES,
-                    global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> dict:
-    """The `range_planners` (the policy) with single-hop exchange and with relay at each
-    of radio_ranges, and the `global_planners` (policy, coordinated, nbv and nbv_team) with
-    global communication, for the `exchanges` named, on the same held-out worlds for every
-    team size -> {(planner, exchange, n, rho): its `cells.ShapeRun`} (rho = inf for global)."""
-    from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
-    from jaxmripp.evaluation import sweep  # noqa: PLC0415
-
+def exchange_overrides(teams: list[int], size: int, radio_ranges: list[float], worlds: int,
+                       overrides: list[str], exchanges=EXCHANGES, global_planners=PLANNERS,
+                       range_planners=RANGE_PLANNERS) -> dict[str, list[str]]:
+    """exchange -> the overrides its sweep loads the policy's config.yaml with: the
+    `range_planners` (the policy) with single-hop exchange and with relay at each of
+    radio_ranges, the `global_planners` (policy, coordinated, nbv and nbv_team) with global
+    communication, on the same held-out worlds for every team size."""
     cell = [f"eval.team_sizes=[{', '.join(map(str, teams))}]", f"eval.world_sizes=[{size}]",
             "eval.budgets=[3.3333333]", "eval.budget_mode=per_robot", f"eval.worlds={worlds}",
             "eval.trials=1", "eval.layout=random", "eval.seed=2000", "eval.render=false",
@@ -240,15 +245,24 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_ranges: lis
     settings_of = {"global": (".inf", "false", global_planners),
                    "single_hop": (ranges, "false", range_planners),
                    "relay": (ranges, "true", range_planners)}
+    return {exchange: [*cell, f"eval.radio_ranges=[{settings_of[exchange][0]}]",
+                       f"radio.relay={settings_of[exchange][1]}",
+                       f"eval.planners=[{', '.join(settings_of[exchange][2])}]"]
+            for exchange in exchanges}
+
+
+def sweep_exchanges(policy: Path, sweeps: dict[str, list[str]]) -> dict:
+    """Each exchange's sweep (`exchange_overrides`) -> {(planner, exchange, n, rho): its
+    `cells.ShapeRun`} (rho = inf for global)."""
+    from jaxmripp import pipeline  # noqa: PLC0415 (after the timing, which needs no policy)
+    from jaxmripp.evaluation import sweep  # noqa: PLC0415
+
     found = {}
-    for exchange in exchanges:
-        rho, relay, planners = settings_of[exchange]
-        cfg = config.load(policy / "config.yaml", [
-            *cell, f"eval.radio_ranges=[{rho}]", f"radio.relay={relay}",
-            f"eval.planners=[{', '.join(planners)}]"])
+    for exchange, overrides in sweeps.items():
+        cfg = config.load(policy / "config.yaml", overrides)
         # a given policy is always evaluated (sweep.planner_names): give it only if listed
         policies = ({"policy": pipeline.trained_planner(cfg, policy)}  # with this relay
-                    if "policy" in planners else {})
+                    if "policy" in cfg.eval.planners else {})
         result = sweep.run_sweep(cfg, policies, time_planning=False, keep_pictures=False,
                                  log=lambda line: print(line, file=sys.stderr))
         for run in result.runs:
@@ -256,12 +270,21 @@ def sweep_exchanges(policy: Path, teams: list[int], size: int, radio_ranges: lis
     return found
 
 
+def emit_rules(argv, policy: Path, worlds: int, sweeps: dict[str, list[str]]) -> None:
+    """The command and the sweeps' settings, for `python -m jaxmripp.ship`: what every
+    figure after them was measured under."""
+    emit_text("scale.command", "python benchmarks/scale.py " + " ".join(argv or sys.argv[1:]))
+    emit_text("scale.rules", {"policy": str(policy), "config": str(policy / "config.yaml"),
+                              "worlds": worlds, "trials": 1, "sweeps": sweeps})
+
+
 def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: int,
-                  overrides: list[str], figure: Path | None = None) -> None:
+                  overrides: list[str], figure: Path | None = None, argv=None) -> None:
     from jaxmripp.evaluation import plots, stats  # noqa: PLC0415
 
-    runs = {key[:3]: run for key, run in
-            sweep_exchanges(policy, [n], size, [radio_range], worlds, overrides).items()}
+    sweeps = exchange_overrides([n], size, [radio_range], worlds, overrides)
+    emit_rules(argv, policy, worlds, sweeps)
+    runs = {key[:3]: run for key, run in sweep_exchanges(policy, sweeps).items()}
     found = {key: run.discovered for key, run in runs.items()}
     for (planner, exchange, _), discovered in found.items():
         mean, std, half = stats.mean_ci(discovered)
@@ -283,13 +306,18 @@ def evaluate_cell(policy: Path, n: int, size: int, radio_range: float, worlds: i
 
 def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
                   overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
-                  global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> None:
+                  global_planners=PLANNERS, range_planners=RANGE_PLANNERS, argv=None) -> None:
     from jaxmripp.evaluation import stats  # noqa: PLC0415
 
+    sweeps = {size: exchange_overrides(teams, size, [PAPER_RADIO[size]], worlds, overrides,
+                                       exchanges, global_planners, range_planners)
+              for size in sizes}
+    emit_rules(argv, policy, worlds, {f"g{size}.{exchange}": settings
+                                      for size, by_exchange in sweeps.items()
+                                      for exchange, settings in by_exchange.items()})
     grid = {}
     for size in sizes:
-        runs = sweep_exchanges(policy, teams, size, [PAPER_RADIO[size]], worlds, overrides,
-                               exchanges, global_planners, range_planners)
+        runs = sweep_exchanges(policy, sweeps[size])
         for (planner, exchange, n, _), run in sorted(runs.items()):
             mean, std, half = stats.mean_ci(run.discovered)
             grid[planner, exchange, size, n] = (mean, std, worlds)
@@ -302,11 +330,14 @@ def evaluate_grid(policy: Path, sizes: list[int], teams: list[int], worlds: int,
 
 def evaluate_ranges(policy: Path, n: int, size: int, radio_ranges: list[float], worlds: int,
                     overrides: list[str], figure: Path | None, exchanges=EXCHANGES,
-                    global_planners=PLANNERS, range_planners=RANGE_PLANNERS) -> None:
+                    global_planners=PLANNERS, range_planners=RANGE_PLANNERS,
+                    argv=None) -> None:
     from jaxmripp.evaluation import stats  # noqa: PLC0415
 
-    runs = sweep_exchanges(policy, [n], size, radio_ranges, worlds, overrides, exchanges,
-                           global_planners, range_planners)
+    sweeps = exchange_overrides([n], size, radio_ranges, worlds, overrides, exchanges,
+                                global_planners, range_planners)
+    emit_rules(argv, policy, worlds, sweeps)
+    runs = sweep_exchanges(policy, sweeps)
     for (planner, exchange, _, rho), run in sorted(runs.items()):
         mean, std, half = stats.mean_ci(run.discovered)
         name = f"scale.range.{planner}.{exchange}" + ("" if exchange == "global" else f".r{rho:g}")

@@ -17,7 +17,8 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import batch_arguments, emit, median_cpu_seconds, median_seconds  # noqa: E402
+from common import (batch_arguments, emit, entry_point, median_cpu_seconds,  # noqa: E402
+                    median_seconds)
 from jaxmripp.sim import maps, sensing, world  # noqa: E402
 from jaxmripp.config import SensorConfig, WorldConfig  # noqa: E402
 
@@ -32,6 +33,7 @@ def sense_step(worlds, position, heading, team_map, sensor, size):
     return jax.vmap(per_env)(worlds, position, heading, team_map)
 
 
+@entry_point
 def main() -> None:
     parser = batch_arguments(__doc__)
     args = parser.parse_args()
@@ -63,4 +65,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

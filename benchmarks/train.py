@@ -15,7 +15,6 @@ network is much cheaper. With the update timed it also prints
 rollout plus its PPO update, which is what decides whether the environment slows training.
 """
 
-import argparse
 import os
 import statistics
 import sys
@@ -25,14 +24,15 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 
-from common import emit, median_seconds  # noqa: E402
+from common import ArgumentParser, emit, entry_point, median_seconds  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
 from jaxmripp.learn import ppo  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
 
 
+@entry_point
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
+    parser = ArgumentParser(description=__doc__)
     parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=16, help="rollout steps timed per call")
@@ -109,4 +109,4 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

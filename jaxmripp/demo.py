@@ -2,6 +2,7 @@
 
     python -m jaxmripp.demo                         # greedy planners, default config
     python -m jaxmripp.demo --export runs/x/export  # the exported policy
+    python -m jaxmripp.demo --export pretrained/default --planner random  # its world, random
 
 The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
 `jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. The robots start on
@@ -34,12 +35,13 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp import folders
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.team import exchange, pads
-from jaxmripp.runtime import weights as fmt
 from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
-from jaxmripp.runtime.planner import OnboardPlanner
+from jaxmripp.runtime.planner import MODES, OnboardPlanner
 from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
 
 KINDS = ("waypoints", "map", "intents")  # the round's three broadcasts
@@ -75,11 +77,14 @@ def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell
 
 
 def main(argv: list[str] | None = None) -> float:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=None,
                         help="export directory (python -m jaxmripp.export RUN_DIR); "
                              "default: greedy planners")
+    parser.add_argument("--planner", choices=MODES, default=None,
+                        help="the runtime's mode on every robot (default: policy with "
+                             "--export, else greedy)")
     parser.add_argument("--config", type=Path, default=None,
                         help="config for the world and, without --export, the planners")
     parser.add_argument("--robots", type=int, default=None, help="team size (default: config)")
@@ -113,10 +118,9 @@ def main(argv: list[str] | None = None) -> float:
 
     try:
         cfg = cfgmod.load(args.config)
-        exported = fmt.load(args.export) if args.export is not None else None
-    except (cfgmod.ConfigError, RuntimeInputError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        exported = folders.export(args.export) if args.export is not None else None
+    except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError) as err:
+        raise SystemExit(fail(err)) from None
     if exported is not None:
         spec, policy = exported.spec, exported.policy
         spacing = exported.header["config"]["robots"].get("pad_spacing",
@@ -135,12 +139,12 @@ def main(argv: list[str] | None = None) -> float:
     try:
         planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
                                    lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
+                                   mode=args.planner,
                                    sectors=args.sectors, sector_count=args.sector_count,
                                    team_key=key)
                     for i in range(n)]
     except ValueError as err:
-        print(f"error: {err}", file=sys.stderr)
-        raise SystemExit(2) from None
+        raise SystemExit(fail(err)) from None
     world_cfg = dataclasses.replace(cfg.world, size=size, layout=args.layout,
                                     targets=(cfg.world.targets[1],) * 2)
     world = jax.jit(worldmod.generate, static_argnums=1)(jax.random.key(args.seed), world_cfg)

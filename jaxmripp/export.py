@@ -17,6 +17,7 @@ from typing import Any
 
 from jaxmripp.learn import policy as policymod
 from jaxmripp.config import Config
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.runtime import weights as fmt
 from jaxmripp.spec.layout import N_GLOBAL_EXTRA, ROBOT_STATE
 
@@ -78,38 +79,50 @@ def export(cfg: Config, params, out_dir: str | Path, source: dict | None = None
     return fmt.save(out_dir, weights, head)
 
 
-def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | None = None
-               ) -> tuple[Path, Path]:
-    """Restores a training run's checkpoint and exports it (default: RUN_DIR/export)."""
-    from jaxmripp import config as cfgmod
+def restore_run(run_dir: str | Path, best: bool = False):
+    """A training run's config, its last (or best) checkpoint's parameters and the
+    provenance an export records; raises FolderError, ConfigError or CheckpointError
+    before anything is written."""
+    from jaxmripp import folders
     from jaxmripp.learn.train import restore
 
     run_dir = Path(run_dir)
-    cfg = cfgmod.load(run_dir / "config.yaml")
+    cfg = folders.training_run(run_dir, best)
     state = restore(cfg, run_dir, best)
     source = {"run_dir": str(run_dir), "checkpoint": "best" if best else "last",
               "update": int(state.update)}
-    return export(cfg, state.params, out_dir or run_dir / "export", source)
+    return cfg, state.params, source
+
+
+def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | None = None
+               ) -> tuple[Path, Path]:
+    """Restores a training run's checkpoint and exports it (default: RUN_DIR/export)."""
+    cfg, params, source = restore_run(run_dir, best)
+    return export(cfg, params, out_dir or Path(run_dir) / "export", source)
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.export", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m jaxmripp.export", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--best", action="store_true", help="export the best checkpoint")
     parser.add_argument("--out", type=Path, default=None, help="default: RUN_DIR/export")
     args = parser.parse_args(argv)
-    from jaxmripp.learn.checkpoint import CheckpointError
+    from jaxmripp import folders
     from jaxmripp.config import ConfigError
 
-    if not args.run_dir.is_dir():  # before importing the trainer: a typo fails at once
-        print(f"error: {args.run_dir}: no such run directory", file=sys.stderr)
-        return 1
+    try:  # before importing the trainer: a folder of another kind fails at once
+        folders.training_run(args.run_dir, args.best)
+    except (folders.FolderError, ConfigError) as err:
+        return fail(err)
+    from jaxmripp.learn.checkpoint import CheckpointError
+
     try:
         npz, header_path = export_run(args.run_dir, args.best, args.out)
-    except (ConfigError, CheckpointError, ExportError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
+    except (ConfigError, folders.FolderError, CheckpointError, ExportError) as err:
+        return fail(err)
+    except OSError as err:  # --out not writable
+        return fail(f"{err.filename or args.out}: cannot write ({err.strerror or err})")
     print(f"wrote {npz} and {header_path}")
     return 0
 

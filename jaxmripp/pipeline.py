@@ -12,32 +12,32 @@ import numpy as np
 from jaxmripp.evaluation import baselines, evaluate, viz
 from jaxmripp.evaluation.sweep import policy_mismatches
 from jaxmripp.evaluation.planners import baseline_planner, deployed, policy_planner
-from jaxmripp import config as cfgmod
+from jaxmripp import config as cfgmod, folders
 from jaxmripp.learn import policy as policymod, train as trainmod
+from jaxmripp.learn.checkpoint import CheckpointError
 from jaxmripp.runtime import weights as weights_format
+from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.config import Config
 from jaxmripp.parallel.mesh import is_main_process
 
 
 def is_training_run(folder: str | Path) -> bool:
-    """A folder train.py wrote (with checkpoints/), as opposed to an export."""
-    return (Path(folder) / "checkpoints").is_dir()
+    """A folder train.py wrote, with a checkpoint (`jaxmripp.folders`), as opposed to an
+    export."""
+    return folders.is_training_run(folder)
 
 
 def trained_params(source: str | Path, cfg: Config | None = None, best: bool = False):
     """Network parameters of a training run (its last or best checkpoint, restored with
     `cfg`, by default the run's config.yaml) or of an export (a folder with policy.npz,
-    e.g. pretrained/default)."""
+    e.g. pretrained/default). Raises FolderError for a folder of neither kind,
+    RuntimeInputError for a corrupt export, CheckpointError for an unreadable checkpoint."""
     source = Path(source)
-    if is_training_run(source):
-        run_cfg = cfg if cfg is not None else cfgmod.load(source / "config.yaml")
+    if folders.is_training_run(source):
+        run_cfg = cfg if cfg is not None else folders.training_run(source, best)
         return trainmod.restore(run_cfg, source, best=best).params
-    if (source / weights_format.WEIGHTS_FILE).is_file():
-        return policymod.unflatten_params(weights_format.load(source).weights)
-    raise cfgmod.ConfigError(
-        f"{str(source)!r}: not a training run (no checkpoints/) nor an export (no "
-        f"{weights_format.WEIGHTS_FILE}); allowed: a folder written by train.py or by "
-        "jaxmripp.export / jaxmripp.ship")
+    folders.policy(source, best, with_config=False)  # neither kind: FolderError
+    return policymod.unflatten_params(weights_format.load(source).weights)
 
 
 def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
@@ -53,6 +53,16 @@ def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
     return Path("runs") / first.name / "eval"
 
 
+def check_initial_params(cfg: Config) -> None:
+    """Checks, by its files alone (no JAX), that `train.init_from` names a training run
+    with a checkpoint or an intact export; ConfigError naming the key otherwise."""
+    if cfg.train.init_from:
+        try:
+            folders.policy(cfg.train.init_from, with_config=False)
+        except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError) as err:
+            raise cfgmod.ConfigError(f"train.init_from: {err}") from None
+
+
 def initial_params(cfg: Config):
     """The parameters `train.init_from` names (None when it is empty), for
     `jaxmripp.learn.train.train`."""
@@ -60,7 +70,7 @@ def initial_params(cfg: Config):
         return None
     try:
         return trained_params(cfg.train.init_from)
-    except cfgmod.ConfigError as err:
+    except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError, CheckpointError) as err:
         raise cfgmod.ConfigError(f"train.init_from: {err}") from None
 
 
@@ -115,9 +125,10 @@ def sweep_planner(run_dir: Path, sweep: Config, name: str = "policy", best: bool
             f"{name} reads the lookahead input {AHEAD_FIELDS} = {policy_inputs(cfg)}, the "
             f"sweep builds {policy_inputs(sweep)}; allowed: the same "
             "(pipeline.with_policy_inputs)")
-    for note in policy_mismatches(cfg, sweep):
+    planner = trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)
+    for note in policy_mismatches(cfg, sweep):  # once the policy has loaded
         log(f"note: {name} was trained with {note}")
-    return trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)
+    return planner
 
 
 def baseline_planners(cfg: Config, params) -> list[baselines.Planner]:

@@ -1,14 +1,27 @@
 """Ships a trained run as a pretrained policy folder (e.g. pretrained/default).
 
-    python -m jaxmripp.ship RUN_DIR OUT_DIR [--best] [--quality FILE] [--wall-minutes M]
-                            [--commit SHA]
+    python -m jaxmripp.ship RUN_DIR OUT_DIR [--best] [--results FILE ...] [--commit SHA]
+    python -m jaxmripp.ship --metadata FOLDER [--results FILE ...] [--commit SHA]
 
 OUT_DIR gets the export the runtime and `eval.py --policy NAME=OUT_DIR` load
 (policy.npz, policy.json), the run's config.yaml, metrics.jsonl and learning curve, and
-metadata.json: the commit (HEAD, or --commit: the one the run trained with), the training
-command, its wall time (the sum of the chunks' times, or --wall-minutes when measured from
-outside), the updates and samples, and the evaluation figures of FILE (the JSON lines
-`benchmarks/quality.py` prints) with the command that printed them.
+metadata.json, every figure of which is read from a file a command wrote:
+
+    commit               HEAD, or --commit (the commit the run trained with)
+    command, init_from   the training command: the preset in configs/ that loads to the
+                         run's config, else the shipped config.yaml; where it started from
+    train_minutes        the sum of the chunks' times in metrics.jsonl
+    updates, agent_steps, training_discovered   metrics.jsonl's last record
+    evaluations          per result FILE (the JSON lines benchmarks/quality.py or
+                         benchmarks/scale.py --eval print): its path, the command that
+                         printed it and the rules it evaluated under (its `*.command`
+                         and `*.rules` lines; for a file printed before those, the command
+                         and the sweep's `eval` settings its --out wrote beside it in
+                         results.md and summary.json) and its figures
+
+--metadata rewrites FOLDER/metadata.json of a shipped folder from the folder's own files
+(metrics.jsonl, config.yaml, policy.json) and the result files, and writes nothing else.
+Nothing is written until every input has been read and checked.
 """
 
 from __future__ import annotations
@@ -19,6 +32,20 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+
+from jaxmripp import config as cfgmod, folders
+from jaxmripp.config.cli import ArgumentParser, fail
+from jaxmripp.learn.metrics import episode_mean
+
+METADATA = "metadata.json"
+PRESETS = Path("configs")
+# Lines of a result file that are not figures: how it was made, and a training figure
+# whose source is the run's own metrics.jsonl.
+NOT_FIGURES = (".command", ".rules", ".train_minutes")
+
+
+class ShipError(ValueError):
+    """A result file or the run's metrics cannot be read as ship needs them."""
 
 
 def _commit() -> str:
@@ -32,78 +59,180 @@ def _commit() -> str:
     return head + ("-dirty" if dirty else "")
 
 
-def _figures(path: Path | None) -> tuple[dict, str | None]:
-    """The figures of a `benchmarks/quality.py` output, and the command that printed them."""
-    if path is None:
-        return {}, None
-    figures = {}
-    for line in path.read_text().splitlines():
-        if line.strip().startswith("{"):
+def read_results(path: Path) -> dict:
+    """One result file as metadata records it: {"results", "command", "rules", "figures"}
+    (ShipError naming the file if it is not a benchmark's output)."""
+    try:
+        lines = [line for line in path.read_text().splitlines() if line.strip()]
+    except OSError as err:
+        raise ShipError(f"--results {path}: cannot read ({err.strerror or err})") from None
+    figures, command, rules = {}, None, None
+    for number, line in enumerate(lines, 1):
+        try:
             record = json.loads(line)
-            figures[record["name"]] = record["value"]
-    return figures, figures.pop("quality.command", None)
+            name, value = record["name"], record["value"]
+        except (json.JSONDecodeError, TypeError, KeyError):
+            raise ShipError(f"--results {path}: line {number} is not a benchmark figure "
+                            '(a JSON object with "name" and "value")') from None
+        if name.endswith(".command"):
+            command = value
+        elif name.endswith(".rules"):
+            rules = value
+        elif not name.endswith(NOT_FIGURES):
+            figures[name] = value
+    if command is None or rules is None:  # printed before the lines that name them
+        beside = written_beside(path)
+        command, rules = command or beside[0], rules or beside[1]
+    missing = [what for what, value in (
+        ("command (a *.command line, or results.md beside it)", command),
+        ("rules (a *.rules line, or summary.json beside it)", rules),
+        ("figures", figures)) if not value]
+    if missing:
+        raise ShipError(f"--results {path}: no {', no '.join(missing)}; allowed: the output "
+                        "of benchmarks/quality.py or benchmarks/scale.py --eval")
+    return {"results": str(path), "command": command, "rules": rules, "figures": figures}
 
 
-def ship(run_dir: Path, out_dir: Path, best: bool = False, quality: Path | None = None,
-         wall_minutes: float | None = None, commit: str | None = None) -> Path:
-    from jaxmripp import config as cfgmod
-    from jaxmripp.evaluation import viz
-    from jaxmripp.export import export_run
-    from jaxmripp.learn.metrics import episode_mean, read_metrics
+def written_beside(path: Path) -> tuple[str | None, dict | None]:
+    """What an evaluation run with --out wrote beside its JSON lines: its command (the
+    "Command:" line of results.md) and its sweep's settings (summary.json's "eval");
+    None for what is not there."""
+    command = rules = None
+    table = path.parent / "results.md"
+    if table.is_file():
+        command = next((line.strip()[len("Command: `"):-1] for line in
+                        table.read_text().splitlines() if line.startswith("Command: `")), None)
+    summary = path.parent / "summary.json"
+    if summary.is_file():
+        try:
+            rules = {"eval": json.loads(summary.read_text())["eval"]}
+        except (json.JSONDecodeError, KeyError, TypeError):
+            raise ShipError(f"{summary}: not an evaluation summary (no 'eval' settings)"
+                            ) from None
+    return command, rules
 
-    cfg = cfgmod.load(run_dir / "config.yaml")
-    records = read_metrics(run_dir)
-    if not records:
-        raise FileNotFoundError(f"{run_dir}: no training metrics (metrics.jsonl)")
-    export_run(run_dir, best, out_dir)
-    for name in ("config.yaml", "metrics.jsonl"):
-        shutil.copyfile(run_dir / name, out_dir / name)
-    viz.learning_curve(out_dir / "learning_curve.png", records,
-                       keys=("discovered", "return", "entropy"))
-    preset = Path("configs") / f"{cfg.train.name}.yaml"
-    config_arg = preset if preset.is_file() else run_dir / "config.yaml"
-    chunks_minutes = sum(r["seconds"] for r in records) / 60
-    figures, evaluation_command = _figures(quality)
-    metadata = {
+
+def training_command(cfg: cfgmod.Config, shipped_config: Path) -> str:
+    """`python train.py --config X`: X the first preset in configs/ that loads to exactly
+    `cfg`, else the shipped config.yaml (which does)."""
+    for preset in sorted(PRESETS.glob("*.yaml")):
+        try:
+            if cfgmod.load(preset) == cfg:
+                return f"python train.py --config {preset}"
+        except cfgmod.ConfigError:
+            continue
+    return f"python train.py --config {shipped_config}"
+
+
+def metadata(cfg: cfgmod.Config, trained: Path, config_path: Path, checkpoint: str,
+             evaluations: list[dict], commit: str | None) -> dict:
+    """metadata.json's content (see the module's docstring); `trained` holds the run's
+    metrics.jsonl."""
+    records = _metrics(trained)
+    meta = {
         "commit": commit or _commit(),
-        "command": f"python train.py --config {config_arg}",
-        "train_minutes": round(wall_minutes if wall_minutes is not None else chunks_minutes, 1),
-        "train_minutes_in_chunks": round(chunks_minutes, 1),
-        "checkpoint": "best" if best else "last",
+        "command": training_command(cfg, config_path),
+        "train_minutes": round(folders.train_minutes(trained), 1),
+        "checkpoint": checkpoint,
         "updates": records[-1]["update"],
         "agent_steps": records[-1]["env_steps"],
-        # over the episodes that ended in the last chunk's updates
+        # over the episodes that ended in the last chunk's updates (some end in none)
         "training_discovered": round(
             episode_mean(records[-cfg.train.updates_per_chunk:], "discovered"), 4),
-        "evaluation": figures,
     }
-    if evaluation_command is not None:
-        metadata["evaluation_command"] = evaluation_command
-    path = out_dir / "metadata.json"
-    path.write_text(json.dumps(metadata, indent=2) + "\n")
+    if cfg.train.init_from:
+        meta["init_from"] = cfg.train.init_from
+    meta["evaluations"] = evaluations
+    return meta
+
+
+def _metrics(folder: Path) -> list[dict]:
+    records = folders.metrics(folder)
+    if not records:
+        raise ShipError(f"{folder}: no training metrics (metrics.jsonl)")
+    return records
+
+
+def _write(path: Path, meta: dict) -> Path:
+    path.write_text(json.dumps(meta, indent=2) + "\n")
     return path
 
 
+def _check_out_dir(out_dir: Path, run_dir: Path) -> None:
+    """OUT_DIR is new, empty or a shipped folder to replace: never the run itself nor a
+    folder of other files."""
+    if out_dir.resolve() == run_dir.resolve():
+        raise folders.FolderError(f"{out_dir}: the run itself; allowed: another folder")
+    if out_dir.exists() and not (out_dir.is_dir() and (folders.is_export(out_dir)
+                                                       or not any(out_dir.iterdir()))):
+        raise folders.FolderError(f"{out_dir}: holds other files; allowed: a new or empty "
+                                  "folder, or a shipped folder to replace")
+
+
+def ship(run_dir: Path, out_dir: Path, best: bool = False, results: list[Path] = (),
+         commit: str | None = None) -> Path:
+    from jaxmripp.evaluation import viz
+    from jaxmripp.export import export, restore_run
+
+    folders.training_run(run_dir, best)  # the cheap checks first: files only
+    _check_out_dir(out_dir, run_dir)
+    _metrics(run_dir)
+    evaluations = [read_results(Path(path)) for path in results]
+    cfg, params, source = restore_run(run_dir, best)
+    meta = metadata(cfg, run_dir, out_dir / "config.yaml", source["checkpoint"], evaluations,
+                    commit)
+    export(cfg, params, out_dir, source)
+    for name in ("config.yaml", "metrics.jsonl"):
+        shutil.copyfile(run_dir / name, out_dir / name)
+    viz.learning_curve(out_dir / "learning_curve.png", folders.metrics(run_dir),
+                       keys=("discovered", "return", "entropy"))
+    return _write(out_dir / METADATA, meta)
+
+
+def rewrite_metadata(folder: Path, results: list[Path] = (), commit: str | None = None
+                     ) -> Path:
+    """FOLDER/metadata.json of a shipped folder, from its own files and `results`."""
+    exported = folders.export(folder, with_config=True)
+    cfg = cfgmod.load(folder / "config.yaml")
+    evaluations = [read_results(Path(path)) for path in results]
+    checkpoint = exported.header.get("source", {}).get("checkpoint", "last")
+    return _write(folder / METADATA, metadata(cfg, folder, folder / "config.yaml",
+                                              checkpoint, evaluations, commit))
+
+
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.ship", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("run_dir", type=Path)
-    parser.add_argument("out_dir", type=Path)
+    parser = ArgumentParser(prog="python -m jaxmripp.ship", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("run_dir", type=Path, nargs="?")
+    parser.add_argument("out_dir", type=Path, nargs="?")
+    parser.add_argument("--metadata", type=Path, metavar="FOLDER",
+                        help="rewrite a shipped folder's metadata.json only")
     parser.add_argument("--best", action="store_true", help="ship the best checkpoint")
-    parser.add_argument("--quality", type=Path, help="benchmarks/quality.py output")
-    parser.add_argument("--wall-minutes", type=float, help="training wall time, measured")
+    parser.add_argument("--results", "--quality", type=Path, action="append", default=[],
+                        metavar="FILE", help="a benchmark's output (repeatable)")
     parser.add_argument("--commit", help="the commit the run trained with (default: HEAD)")
     args = parser.parse_args(argv)
-    if not (args.run_dir / "config.yaml").is_file():
-        print(f"error: {args.run_dir}: not a training run (no config.yaml)", file=sys.stderr)
-        return 1
+    if (args.metadata is None) == (args.run_dir is None or args.out_dir is None) or (
+            args.metadata is not None and args.run_dir is not None):
+        parser.error("give RUN_DIR OUT_DIR, or --metadata FOLDER alone")
+
+    from jaxmripp.export import ExportError
+    from jaxmripp.learn.checkpoint import CheckpointError
+    from jaxmripp.runtime.errors import RuntimeInputError
+
+    refused = (ShipError, folders.FolderError, cfgmod.ConfigError, ExportError, CheckpointError,
+               RuntimeInputError)
     try:
-        path = ship(args.run_dir, args.out_dir, args.best, args.quality, args.wall_minutes,
-                    args.commit)
-    except (OSError, ValueError) as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 1
-    print(f"shipped {args.run_dir} to {args.out_dir} ({path.name})")
+        if args.metadata is not None:
+            path = rewrite_metadata(args.metadata, args.results, args.commit)
+            print(f"wrote {path}")
+        else:
+            path = ship(args.run_dir, args.out_dir, args.best, args.results, args.commit)
+            print(f"shipped {args.run_dir} to {args.out_dir} ({path.name})")
+    except refused as err:
+        return fail(err)
+    except OSError as err:
+        return fail(f"{err.filename or ''}: cannot write ({err.strerror or err})")
     return 0
 
 

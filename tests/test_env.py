@@ -737,19 +737,22 @@ def test_greedy_follows_its_score_not_chance():
 
 
 @pytest.mark.slow
-def test_greedy_beats_random_on_average_over_20_worlds_in_the_paper_world():
-    """In the paper's world (`configs/paper.yaml`: windows inside footprints, a frustum
-    without occlusion, one shared utility GP), where a pose sees many windows, the utility
-    GP's mean does point at windows and greedy beats random on the same 20 small worlds
-    (measured: 28.7% vs 27.1%; over 40 worlds 30.4% vs 29.3%)."""
-    cfg = config.load(REPO / "configs/paper.yaml",
-                      ["world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]"])
-    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
-    keys = jax.random.split(jax.random.key(2024), WORLDS)
-    greedy = jnp.arange(2 * WORLDS) >= WORLDS
-    run = jit(jax.vmap(lambda key, g: episode.run(key, params, dyn, switch_planner(g))))
-    frac = np.asarray(run(jnp.concatenate([keys, keys]), greedy).discovered_fraction)
-    rand, greedy_frac = frac[:WORLDS], frac[WORLDS:]
-    print(f"paper world: random {100 * rand.mean():.1f}%, "
-          f"greedy {100 * greedy_frac.mean():.1f}%")
-    assert greedy_frac.mean() > rand.mean()
+def test_random_finds_more_than_greedy_on_table_one_in_the_paper_world():
+    """Table I's setting in the paper's world (configs/eval_paper_world.yaml: windows inside
+    footprints, a frustum without occlusion, N = 3, B = 10, G = 50, shared maps) at
+    rho = inf, on WORLDS of its worlds: random finds more than greedy, as on the
+    protocol's 250 episodes (docs/results/paper: 41.07% against 31.22%). The utility GP
+    regresses how many windows a pose sees, not how many it would see first, so greedy's
+    score points back at windows already found (docs/baselines.md), while random spreads
+    the team."""
+    from jaxmripp.evaluation import sweep
+
+    cfg = config.load(REPO / "configs/eval_paper_world.yaml", [
+        "eval.planners=[greedy, random]", "eval.radio_ranges=[.inf]", f"eval.worlds={WORLDS}",
+        "eval.trials=1", "eval.pairs=[]", "eval.render=false"])
+    result = sweep.run_sweep(cfg, {}, log=lambda _: None, time_planning=False,
+                             keep_pictures=False)
+    found = {run.planner: run.discovered for run in result.runs}
+    print(f"paper world, Table I setting: random {found['random'].mean():.2f}%, "
+          f"greedy {found['greedy'].mean():.2f}%")
+    assert found["random"].mean() > found["greedy"].mean()

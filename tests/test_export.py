@@ -196,18 +196,19 @@ def test_cli_exports_a_run_directory(run_dir, tmp_path, capsys):
 def test_cli_run_directory_without_checkpoint_fails_in_one_line(tmp_path, capsys):
     cfg = cfgmod.load(REPO / "configs/smoke.yaml")
     (tmp_path / "config.yaml").write_text(cfgmod.to_yaml(cfg))
-    assert export.main([str(tmp_path)]) == 1
+    assert export.main([str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
-    assert err.startswith("error: ") and "no checkpoint" in err and "\n" not in err
-    assert not (tmp_path / "export").exists()
+    assert err.startswith("error: ") and "neither a training run" in err and "\n" not in err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["config.yaml"]  # nothing written
 
 
 def test_cli_missing_run_directory_fails_in_one_line(tmp_path):
     missing = tmp_path / "no-such-run"
     result = subprocess.run([sys.executable, "-m", "jaxmripp.export", str(missing)], cwd=REPO,
                             capture_output=True, text=True, timeout=120)
-    assert result.returncode == 1
-    assert result.stderr.strip() == f"error: {missing}: no such run directory"
+    assert result.returncode == 2
+    assert result.stderr.strip().startswith(f"error: {missing}: no such folder; allowed: a "
+                                            "training run")
     assert result.stdout == "" and not missing.exists()
 
 
@@ -223,15 +224,23 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
         {"update": 10, "env_steps": 960, "seconds": 90.0, "discovered": 0.25, "return": 1.0,
          "entropy": 2.0}) + "\n")
     quality = tmp_path / "quality.jsonl"
-    quality.write_text('{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n'
-                       '{"name": "quality.command", "value": "python benchmarks/quality.py"}\n')
+    rules = {"config": "configs/eval_paper.yaml", "worlds": 2}
+    quality.write_text('{"name": "quality.command", "value": "python benchmarks/quality.py"}\n'
+                       + json.dumps({"name": "quality.rules", "value": rules}) + "\n"
+                       '{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n'
+                       '{"name": "quality.train_minutes", "value": 99.0, "unit": "min"}\n')
     out = tmp_path / "shipped"
-    assert ship.main([str(run), str(out), "--quality", str(quality)]) == 0
+    assert ship.main([str(run), str(out), "--results", str(quality)]) == 0
     meta = json.loads((out / "metadata.json").read_text())
-    assert meta["train_minutes"] == 1.5 and meta["updates"] == 10
-    assert meta["evaluation"] == {"quality.policy_pct": 41.5}
-    assert meta["evaluation_command"] == "python benchmarks/quality.py"
-    assert meta["command"].startswith("python train.py --config ")
+    assert meta["train_minutes"] == 1.5 and meta["updates"] == 10  # from metrics.jsonl
+    # The figures with the command and rules they were measured under; the training time
+    # is the metrics' (a result file's copy of it is not an evaluation figure).
+    assert meta["evaluations"] == [{"results": str(quality), "command":
+                                    "python benchmarks/quality.py", "rules": rules,
+                                    "figures": {"quality.policy_pct": 41.5}}]
+    # configs/smoke.yaml loads to exactly the run's config, so it is the command's preset.
+    assert meta["command"] == "python train.py --config configs/smoke.yaml"
+    assert "init_from" not in meta
     assert {"policy.npz", "policy.json", "config.yaml", "learning_curve.png"} <= {
         p.name for p in out.iterdir()}
 
@@ -258,7 +267,14 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
     np.testing.assert_array_equal(named.act(None, named.init(n), obs)[1], actions)
     assert notes == [f"note: mine was trained with sensor.range={cfg.sensor.range} "
                      "(evaluating with 0.2)"]
-    assert ship.main([str(tmp_path / "nothing"), str(out)]) == 1
+    # The metadata alone, again from the shipped folder's own files: the same record.
+    before = {p.name: p.read_bytes() for p in out.iterdir() if p.name != "metadata.json"}
+    (out / "metadata.json").unlink()
+    assert ship.main(["--metadata", str(out), "--results", str(quality),
+                      "--commit", meta["commit"]]) == 0
+    assert json.loads((out / "metadata.json").read_text()) == meta
+    assert {p.name: p.read_bytes() for p in out.iterdir() if p.name != "metadata.json"} == before
+    assert ship.main([str(tmp_path / "nothing"), str(out)]) == 2
 
 
 def test_a_sweep_builds_the_lookahead_input_its_policies_read(tmp_path):

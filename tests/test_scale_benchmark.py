@@ -171,7 +171,12 @@ def test_ranges_print_each_range_and_the_ratio_of_their_own_figures(tmp_path):
     assert set(lines) == {"scale.range.policy.single_hop.r0.15", "scale.range.policy.relay.r0.15",
                           "scale.range.policy.single_hop.r0.3", "scale.range.policy.relay.r0.3",
                           "scale.range.nbv.global", "scale.range.relay_vs_best_global.r0.15",
-                          "scale.range.relay_vs_best_global.r0.3"}
+                          "scale.range.relay_vs_best_global.r0.3", "scale.command",
+                          "scale.rules"}
+    # The rules name each sweep's settings: relay on, both ranges, the policy alone.
+    relay = lines["scale.rules"]["value"]["sweeps"]["relay"]
+    assert {"radio.relay=true", "eval.radio_ranges=[0.15, 0.3]", "eval.planners=[policy]",
+            "eval.worlds=2"} <= set(relay)
     for rho in ("0.15", "0.3"):
         ratio = lines[f"scale.range.relay_vs_best_global.r{rho}"]
         assert math.isclose(ratio["value"], lines[f"scale.range.policy.relay.r{rho}"]["value"]

@@ -18,13 +18,14 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.mission import PLANNERS
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m jaxmripp.flight", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser = ArgumentParser(prog="python -m jaxmripp.flight", description=__doc__,
+                            formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=Path("pretrained/default"),
                         help="exported policy (directory with policy.json)")
     parser.add_argument("--planner", default="policy", choices=PLANNERS)
@@ -46,9 +47,8 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         team = load_team(args.export, parse_footprints(args.footprints))
-    except (OSError, ValueError) as error:
-        print(f"python -m jaxmripp.flight: {error}", file=sys.stderr)
-        return 2
+    except ValueError as error:  # a bad export or config (RuntimeInputError, ConfigError)
+        return fail(error)
     settings = MissionSettings(budget=args.budget, sectors=args.sectors)
     city = citymod.generate(args.seed, team.world, settings.frame)
     rule = " (sectors)" if args.sectors else ""

@@ -10,6 +10,8 @@ leaves no half-written step behind.
 
 from __future__ import annotations
 
+import contextlib
+import logging
 from pathlib import Path
 from typing import Any
 
@@ -22,22 +24,28 @@ class CheckpointError(RuntimeError):
 
 
 class Checkpoints:
-    """`last/` keeps the newest `keep` chunks, `best/` the one with the highest score."""
+    """`last/` keeps the newest `keep` chunks, `best/` the one with the highest score.
+
+    Opening them writes nothing: the folders are made by the first `save`, so a command
+    that only restores (export, eval, a refused resume) leaves the run folder as it was."""
 
     def __init__(self, directory: str | Path, keep: int):
         directory = Path(directory).absolute()
-        sync = dict(enable_async_checkpointing=False, create=True)
+        sync = dict(enable_async_checkpointing=False, create=False)
         # The handler named, so that `fields` can read a checkpoint's tree before restoring.
         handler = dict(item_handlers=ocp.StandardCheckpointHandler())
-        self.last = ocp.CheckpointManager(
-            directory / "last", options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync),
-            **handler)
-        self.best = ocp.CheckpointManager(
-            directory / "best", options=ocp.CheckpointManagerOptions(
-                max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync),
-            **handler)
+        with reading(directory):  # opening reads every step's metadata and metrics
+            self.last = ocp.CheckpointManager(
+                directory / "last",
+                options=ocp.CheckpointManagerOptions(max_to_keep=keep, **sync), **handler)
+            self.best = ocp.CheckpointManager(
+                directory / "best", options=ocp.CheckpointManagerOptions(
+                    max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync),
+                **handler)
 
     def save(self, step: int, state: Any, score: float) -> None:
+        for manager in (self.last, self.best):
+            Path(manager.directory).mkdir(parents=True, exist_ok=True)
         if step not in self.best.all_steps():
             self.best.save(step, args=ocp.args.StandardSave(state),
                            metrics={"score": float(score)})
@@ -76,7 +84,8 @@ class Checkpoints:
             partial_restore=True)
         # A reader of its own: a partial restore needs orbax's PyTree handler, which a
         # manager holding the standard one refuses.
-        reader = ocp.CheckpointManager(manager.directory)
+        with reading(Path(manager.directory)):
+            reader = ocp.CheckpointManager(manager.directory)
         try:
             return restore_checked(reader, step, template, args)
         finally:
@@ -91,12 +100,10 @@ def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any,
                     args: ocp.args.CheckpointArgs) -> Any:
     """Restores into `template`'s structure, turning shape mismatches into one clear line."""
     try:
-        restored = manager.restore(step, args=args)
-    except Exception as err:  # orbax raises many types; the caller needs one message
-        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
-        raise CheckpointError(
-            f"{manager.directory}/{step}: cannot restore into this config's shapes "
-            f"({first[:300]})") from None
+        with reading(Path(manager.directory) / str(step)):
+            restored = manager.restore(step, args=args)
+    except CheckpointError as err:
+        raise CheckpointError(f"{err} (written with another config or damaged?)") from None
     want = jax.tree.map(lambda x: (x.shape, x.dtype), template)
     got = jax.tree.map(lambda x: (x.shape, x.dtype), restored)
     if want != got:

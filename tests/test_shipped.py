@@ -1,0 +1,107 @@
+"""The shipped policies (pretrained/*): every figure their metadata.json gives comes from a
+file a command wrote, and the default policy plans better than the simple planners.
+
+metadata.json is written by `python -m jaxmripp.ship` (or `--metadata` from the folder's
+own files); each check below reads the source files itself.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from jaxmripp import config as cfgmod, demo
+
+REPO = Path(__file__).resolve().parents[1]
+SHIPPED = sorted(p.name for p in (REPO / "pretrained").iterdir() if p.is_dir())
+NOT_FIGURES = (".command", ".rules", ".train_minutes")  # ship.py's; checked separately
+
+
+def lines(path: Path) -> dict[str, object]:
+    """name -> value of a benchmark's JSON lines."""
+    records = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    return {r["name"]: r["value"] for r in records}
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_training_figures_are_the_folders_own(name):
+    """Minutes, updates and steps are those of the folder's metrics.jsonl; the command
+    trains with a config that loads to the folder's config.yaml; init_from is its own."""
+    folder = REPO / "pretrained" / name
+    meta = json.loads((folder / "metadata.json").read_text())
+    records = [json.loads(line) for line in (folder / "metrics.jsonl").read_text().splitlines()
+               if line.strip()]
+    assert meta["train_minutes"] == round(sum(r["seconds"] for r in records) / 60, 1)
+    assert meta["updates"] == records[-1]["update"]
+    assert meta["agent_steps"] == records[-1]["env_steps"]
+    assert meta["training_discovered"] == round(records[-1]["discovered"], 4)
+    cfg = cfgmod.load(folder / "config.yaml")
+    prefix = "python train.py --config "
+    assert meta["command"].startswith(prefix)
+    assert cfgmod.load(REPO / meta["command"][len(prefix):]) == cfg
+    assert meta.get("init_from", "") == cfg.train.init_from
+    header = json.loads((folder / "policy.json").read_text())
+    assert meta["checkpoint"] == header["source"]["checkpoint"]
+
+
+@pytest.mark.parametrize("name", SHIPPED)
+def test_every_evaluation_figure_is_in_the_result_file_it_names(name):
+    """Each evaluation names a committed result file; its command, rules and figures are
+    that file's, and the command evaluated this folder's policy. A file printed before
+    benchmarks named their command and rules has them in what the same run's --out wrote
+    beside it (results.md's command, summary.json's sweep settings), whose means are the
+    file's figures."""
+    meta = json.loads((REPO / "pretrained" / name / "metadata.json").read_text())
+    assert meta["evaluations"], "no evaluation figures"
+    for evaluation in meta["evaluations"]:
+        path = REPO / evaluation["results"]
+        found = lines(path)
+        figures = {k: v for k, v in found.items() if not k.endswith(NOT_FIGURES)}
+        assert evaluation["figures"] == figures
+        commands = [v for k, v in found.items() if k.endswith(".command")] or [
+            line[len("Command: `"):-1] for line in
+            (path.parent / "results.md").read_text().splitlines()
+            if line.startswith("Command: `")]
+        assert commands == [evaluation["command"]]
+        rules = [v for k, v in found.items() if k.endswith(".rules")]
+        if not rules:
+            summary = json.loads((path.parent / "summary.json").read_text())
+            rules = [{"eval": summary["eval"]}]
+            for row in summary["summary"]:
+                figure = f"quality.pct.{row['planner']}.rho{float(row['radio_range']):g}"
+                assert figures[figure] == pytest.approx(row["mean"], abs=1e-4)
+        assert rules == [evaluation["rules"]]
+        command = evaluation["command"].split()
+        policy = (command[command.index("--policy") + 1] if "--policy" in command else
+                  f"pretrained/{command[command.index('--preset') + 1]}")
+        assert policy == f"pretrained/{name}"
+
+
+def test_rules_of_a_quality_result_name_its_worlds_and_trials():
+    """The rules recorded with the README's figures of pretrained/default_fast: the
+    protocol's 25 worlds x 10 trials at both radio ranges."""
+    meta = json.loads((REPO / "pretrained/default_fast/metadata.json").read_text())
+    rules = meta["evaluations"][0]["rules"]
+    assert (rules["worlds"], rules["trials"], rules["config"]) == (
+        25, 10, "configs/eval_paper.yaml")
+    assert "eval.radio_ranges=[.inf, 0.1]" in rules["overrides"]
+
+
+# The worlds (demo seeds) of the quick check; measured at B = 10: policy 48.8, 50.0 and
+# 47.6% of the windows, greedy 34.0, 13.2 and 16.4, random 28.8, 18.0 and 17.2.
+WORLDS = (1, 2, 3)
+
+
+def test_the_default_policy_finds_more_than_random_and_greedy_in_each_world(capsys):
+    """pretrained/default flown by the onboard runtime (python -m jaxmripp.demo: 3 robots,
+    B = 10, a random-layout world per seed) against the runtime's greedy and random modes
+    on the same worlds, from the same start: it finds more in every world."""
+    found = {planner: [demo.main(["--export", str(REPO / "pretrained/default"), "--planner",
+                                  planner, "--seed", str(seed), "--budget", "10", "--quiet"])
+                       for seed in WORLDS]
+             for planner in ("policy", "greedy", "random")}
+    capsys.readouterr()
+    for i, seed in enumerate(WORLDS):
+        assert found["policy"][i] > max(found["greedy"][i], found["random"][i]), (seed, found)
