@@ -96,6 +96,26 @@ class Checkpoints:
         self.best.close()
 
 
+@contextlib.contextmanager
+def reading(directory: Path):
+    """Orbax reports a damaged checkpoint as ERROR log lines and one of many exception
+    types; inside this block the log lines are held back and the exception becomes one
+    CheckpointError line naming `directory`."""
+    logger = logging.getLogger("absl")
+    level = logger.level
+    logger.setLevel(logging.CRITICAL)
+    try:
+        yield
+    except CheckpointError:
+        raise
+    except Exception as err:  # orbax raises many types; the caller needs one message
+        first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
+        raise CheckpointError(f"{directory}: cannot restore this checkpoint "
+                              f"({type(err).__name__}: {first[:300]})") from None
+    finally:
+        logger.setLevel(level)
+
+
 def restore_checked(manager: ocp.CheckpointManager, step: int, template: Any,
                     args: ocp.args.CheckpointArgs) -> Any:
     """Restores into `template`'s structure, turning shape mismatches into one clear line."""
