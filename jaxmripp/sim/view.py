@@ -109,34 +109,45 @@ def _total_weight(sensor: SensorConfig, size: int) -> int:
     return spec.RAYS_PER_SIDE**2 * int(weights.sum())
 
 
-def _codes(read, camera: jax.Array, offsets: jax.Array, size: int, rate=None):
+def _codes(read, camera: jax.Array, offsets: jax.Array, size: int, rated: bool = False):
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
     voxel indices and marked codes, read by `read(flat, x, y, z)` at the clipped voxels,
-    OCCUPIED outside the grid; with a `rate` reader (same arguments) also the samples'
-    quantised facade rates (`jaxmripp.spec.belief`), 0 outside the grid."""
+    OCCUPIED outside the grid. A `rated` reader returns (code, quantised facade rate,
+    `jaxmripp.spec.belief`), and so does this, with rate 0 outside the grid."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
     x, y, z = (jnp.clip(v, 0, size - 1) for v in (x, y, z))
     flat = (x * size + y) * size + z
-    code = jnp.where(inside, read(flat, x, y, z), jnp.int8(OCCUPIED))
-    if rate is None:
-        return flat, code
-    return flat, code, jnp.where(inside, rate(flat, x, y, z), 0)
+    if not rated:
+        return flat, jnp.where(inside, read(flat, x, y, z), jnp.int8(OCCUPIED))
+    code, rate = read(flat, x, y, z)
+    return flat, jnp.where(inside, code, jnp.int8(OCCUPIED)), jnp.where(inside, rate, 0)
 
 
-def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig, size: int,
-               rates: jax.Array | None = None) -> tuple[jax.Array, ...]:
+def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig,
+               size: int) -> tuple[jax.Array, ...]:
     """One robot's marked map, camera voxels (K, 3) -> the integer sums (unknown, facade),
-    each (K, 4) int32, of the gain samples' weights; with quantised facade rates (G, G)
-    int32 (`jaxmripp.spec.belief`) also the rate-weighted facade sums (K, 4)."""
-    rate = None if rates is None else _rate_reader(rates.reshape(-1), size)
-    return _heading_sums(_ray_sums(_map_reader(marked), camera, sensor, size, rate), sensor,
-                         size)
+    each (K, 4) int32, of the gain samples' weights."""
+    return _heading_sums(_ray_sums(_map_reader(marked), camera, sensor, size), sensor, size)
 
 
-def _rate_reader(rates: jax.Array, size: int):
-    """The `_codes` rate reader of one robot's flat facade rates (G * G,)."""
-    return lambda flat, x, y, z: take_flat(rates, x * size + y)
+def _column_table(near: jax.Array, rates: jax.Array) -> jax.Array:
+    """Facade tops and quantised facade rates (..., G, G) -> one int32 per column, the top
+    in the low byte and the rate above it: a rated sample reads both with one gather."""
+    return near.astype(jnp.int32) | (rates << 8)
+
+
+def _rated_sums(occupancy: jax.Array, table: jax.Array, camera: jax.Array,
+                sensor: SensorConfig, size: int) -> tuple[jax.Array, ...]:
+    """`_gain_sums` of one robot's map (G, G, G) with its column table (G, G)
+    (`_column_table`), then its rate-weighted facade sums (K, 4)."""
+    codes, columns = occupancy.reshape(-1), table.reshape(-1)
+
+    def read(flat, x, y, z):
+        column = take_flat(columns, x * size + y)
+        return _marked_code(take_flat(codes, flat), column & 0xFF, z, sensor), column >> 8
+
+    return _heading_sums(_ray_sums(read, camera, sensor, size, rated=True), sensor, size)
 
 
 def _packed(sensor: SensorConfig, size: int) -> bool:
@@ -145,10 +156,10 @@ def _packed(sensor: SensorConfig, size: int) -> bool:
 
 
 def _ray_sums(read, camera: jax.Array, sensor: SensorConfig, size: int,
-              rate=None) -> tuple[jax.Array, ...]:
+              rated: bool = False) -> tuple[jax.Array, ...]:
     """`_gain_sums` per ray, (K, 4 * R) int32 each, with codes from `read` (see `_codes`;
     it reads samples (K, 4 * R)), in the layout `_heading_sums` reads: (packed,) while
-    both totals fit 15 bits (`_packed`), else (unknown, facade); with a `rate` reader
+    both totals fit 15 bits (`_packed`), else (unknown, facade); with a `rated` reader
     (see `_codes`) then the rate-weighted facade sums.
 
     Integer sums are exact in any order. While both totals fit 15 bits (ranges up to about
@@ -165,15 +176,15 @@ def _ray_sums(read, camera: jax.Array, sensor: SensorConfig, size: int,
     unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
     windows_sum = jnp.zeros_like(unknown_sum)
-    if rate is not None:
+    if rated:
         _check_rate_sums(sensor, size)
     clear = jnp.ones(unknown_sum.shape, bool)
     for s, w in enumerate(weights.astype(int)):
-        code, *rated = _codes(read, camera, per_distance[s], size, rate)[1:]
+        code, *rate = _codes(read, camera, per_distance[s], size, rated)[1:]
         unknown = clear & ((code == UNKNOWN) | (code == FACADE))
         facade = clear & (code == FACADE)
         if rated:
-            windows_sum = windows_sum + jnp.where(facade, jnp.int32(w) * rated[0], 0)
+            windows_sum = windows_sum + jnp.where(facade, jnp.int32(w) * rate[0], 0)
         if packed:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0) \
                 + jnp.where(facade, jnp.int32(w << 16), 0)
@@ -182,7 +193,7 @@ def _ray_sums(read, camera: jax.Array, sensor: SensorConfig, size: int,
             facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
         clear = clear & (code != OCCUPIED)
     sums = (unknown_sum,) if packed else (unknown_sum, facade_sum)
-    return sums + ((windows_sum,) if rate is not None else ())
+    return sums + ((windows_sum,) if rated else ())
 
 
 def _check_rate_sums(sensor: SensorConfig, size: int) -> None:
@@ -220,9 +231,13 @@ def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
     (view_unknown, view_facade), each (K, 4) float32 per position and heading; with the
     robot's quantised facade rates (G, G) int32 (`jaxmripp.sim.belief.facade_rates`) also
     view_windows (`jaxmripp.spec.belief`), (K, 4)."""
-    marked = _marked_map(occupancy, facade_tops(top, sensor), sensor, size)
+    near = facade_tops(top, sensor)
     camera = geometry.voxel_of(position, size)
-    return _scaled(_gain_sums(marked, camera, sensor, size, rates), sensor, size)
+    if rates is None:
+        sums = _gain_sums(_marked_map(occupancy, near, sensor, size), camera, sensor, size)
+    else:
+        sums = _rated_sums(occupancy, _column_table(near, rates), camera, sensor, size)
+    return _scaled(sums, sensor, size)
 
 
 def team_view_gain(team_map: jax.Array, top: jax.Array, position: jax.Array,
@@ -249,13 +264,13 @@ _FLAT_LIMIT = 2**31  # flat indices into all maps at once must stay below this (
 
 
 def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Array,
-                 needed: jax.Array, sensor: SensorConfig, size: int, rates=None):
+                 needed: jax.Array, sensor: SensorConfig, size: int, rated: bool = False):
     """The gain sums of the needed entries (P,) in their order, each (P, 4) int32 (rows
     past their count are 0): computed chunk by chunk, only as many chunks as are needed.
 
     `team` are E team maps (E, W, G, G, G) and `near` the facade tops (E * N, G, G) of
-    their robots (`rates`, the same shape, their facade rates, or None); entry p belongs
-    to robot p // (K + 1) of that folded order. A sample
+    their robots (or, rated, their column tables, `_column_table`); entry p belongs to
+    robot p // (K + 1) of that folded order. A sample
     reads its map byte and its column's facade top and decodes them for its robot, so
     no robot's map is ever written out. The loop keeps the sums per ray and adds up the
     rays after it: each chunk is then one elementwise pass, which XLA:CPU runs faster than
@@ -269,7 +284,6 @@ def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Ar
     words = jnp.swapaxes(team.reshape(-1, team.shape[-4], cells), 0, 1).reshape(
         team.shape[-4], -1)
     near = near.reshape(-1)
-    rates = None if rates is None else rates.reshape(-1)
 
     def one_chunk(i, sums):
         at = jax.lax.dynamic_slice_in_dim(listed, i * chunk, chunk)
@@ -277,20 +291,20 @@ def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Ar
 
         def read(flat, x, y, z):
             code = maps.codes_at(words, robot % n_robots, (robot // n_robots) * cells + flat)
-            return _marked_code(code, take_flat(near, (robot * size + x) * size + y), z,
-                                sensor)
+            column = take_flat(near, (robot * size + x) * size + y)
+            if not rated:
+                return _marked_code(code, column, z, sensor)
+            return _marked_code(code, column & 0xFF, z, sensor), column >> 8
 
-        def rate(flat, x, y, z):
-            return take_flat(rates, (robot * size + x) * size + y)
-
-        part = _ray_sums(read, camera[at], sensor, size, None if rates is None else rate)
+        part = _ray_sums(read, camera[at], sensor, size, rated)
         return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
                      for s, p in zip(sums, part))
 
-    zero = lambda flat, *_: jnp.zeros(flat.shape, jnp.int8)  # noqa: E731
-    shapes = jax.eval_shape(
-        lambda c: _ray_sums(zero, c, sensor, size, None if rates is None else zero),
-        camera[:chunk])
+    def zero(flat, *_):
+        code = jnp.zeros(flat.shape, jnp.int8)
+        return (code, jnp.zeros(flat.shape, jnp.int32)) if rated else code
+
+    shapes = jax.eval_shape(lambda c: _ray_sums(zero, c, sensor, size, rated), camera[:chunk])
     empty = tuple(jnp.zeros((chunk * _CHUNKS, *x.shape[1:]), x.dtype) for x in shapes)
     sums = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk, empty)
     return _heading_sums(sums, sensor, size)
@@ -305,12 +319,17 @@ def _team_gains(sensor: SensorConfig, size: int, n_robots: int, rated: bool = Fa
     def sums_of(team, top, position, origin, rates=None):
         robots, slots = position.shape[:2]
         near = jax.vmap(facade_tops, in_axes=(0, None))(top, sensor)
+        if rates is not None:
+            near = _column_table(near, rates)
         if robots * size**3 >= _FLAT_LIMIT:  # robot by robot, every slot
             robot_maps = maps.robot_maps(team, n_robots).reshape(robots, size, size, size)
+            camera = geometry.voxel_of(position, size)
+            if rates is not None:
+                return jax.vmap(lambda m, t, c: _rated_sums(m, t, c, sensor, size))(
+                    robot_maps, near, camera)
             marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None))(robot_maps, near,
                                                                        sensor, size)
-            return jax.vmap(lambda m, c, r: _gain_sums(m, c, sensor, size, r))(
-                marked, geometry.voxel_of(position, size), rates)
+            return jax.vmap(lambda m, c: _gain_sums(m, c, sensor, size))(marked, camera)
         # Each robot's slots, then its own voxel; a slot needs its own gain unless it is in
         # that voxel.
         own = geometry.voxel_of(origin, size)[:, None, :]
@@ -318,7 +337,7 @@ def _team_gains(sensor: SensorConfig, size: int, n_robots: int, rated: bool = Fa
         needed = jnp.concatenate([jnp.any(camera[:, :slots] != own, axis=-1),
                                   jnp.ones((robots, 1), bool)], axis=1)
         sums = _listed_sums(team, n_robots, near, camera.reshape(-1, 3), needed.reshape(-1),
-                            sensor, size, rates)
+                            sensor, size, rates is not None)
         # Where each slot's sums were listed: at its own rank, or at its robot's voxel's.
         rank = (jnp.cumsum(needed.reshape(-1)) - 1).reshape(robots, slots + 1)
         source = jnp.where(needed, rank, rank[:, -1:])[:, :slots]
