@@ -89,12 +89,13 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
                           cfg.policy.width, in_turn=in_turn)
 
 
-AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight")
+AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight", "belief_features",
+                "belief_strength")
 
 
 def policy_inputs(cfg: Config) -> tuple:
-    """The settings of `cfg`'s optional policy inputs (`AHEAD_FIELDS`), which decide the
-    observations its environments build."""
+    """The settings of `cfg`'s optional policy inputs (`AHEAD_FIELDS`: the lookahead and
+    belief inputs), which decide the observations its environments build."""
     return tuple(getattr(cfg.policy, f) for f in AHEAD_FIELDS)
 
 

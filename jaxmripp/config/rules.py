@@ -53,8 +53,10 @@ _POSITIVE = _range(0, lo_open=True)
 _NONNEG = _range(0)
 _UNIT = _range(0, 1)
 METRIC_SINKS = ("jsonl", "tensorboard", "wandb")  # where train.log may send metrics
-PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "nbv_ahead", "mcts",
-            "rig", "oracle")
+PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "nbv_ahead",
+            "nbv_targets", "mcts", "rig", "oracle", "oracle_ahead", "oracle_rate")
+# Upper references: they read the truth, so tables never count them as baselines.
+REFERENCES = ("oracle", "oracle_ahead", "oracle_rate")
 
 RULES: dict[str, tuple] = {
     "world.size": _range(10, 256),
@@ -106,6 +108,7 @@ RULES: dict[str, tuple] = {
     "policy.ahead_branches": _range(0, 4096),
     "policy.ahead_discount": _NONNEG,
     "policy.ahead_facade_weight": _NONNEG,
+    "policy.belief_strength": _POSITIVE,
     "ppo.algo": _choice("ippo", "mappo"),
     "ppo.learning_rate": _range(0, 1, lo_open=True),
     "ppo.lr_decay": _range(0, 1, lo_open=True),
@@ -160,6 +163,11 @@ RULES: dict[str, tuple] = {
     "eval.nbv_ahead_discount": _NONNEG,
     "eval.nbv_ahead_branches": _range(1, 4096),
     "eval.nbv_ahead_flights": _range(2, 4),
+    "eval.nbv_targets_strength": _POSITIVE,
+    "eval.nbv_targets_facade": _NONNEG,
+    "eval.nbv_targets_discount": _NONNEG,
+    "eval.nbv_targets_branches": _range(1, 4096),
+    "eval.oracle_ahead_branches": _range(1, 4096),
     "eval.mcts_simulations": _range(1, 4096),
     "eval.mcts_depth": _range(1, 64),
     "eval.mcts_considered": _range(1, 512),
@@ -222,6 +230,16 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("eval.nbv_ahead_branches", cfg.eval.nbv_ahead_branches,
                          f"at most the candidate count 4 x candidates.positions = "
                          f"{cfg.candidates.count}"))
+    for name in ("nbv_targets", "oracle_rate", "oracle_ahead"):
+        key = "oracle_ahead_branches" if name == "oracle_ahead" else "nbv_targets_branches"
+        branches = getattr(cfg.eval, key)
+        if name in cfg.eval.planners and branches > cfg.candidates.count:
+            problems.append((f"eval.{key}", branches, f"at most the candidate count 4 x "
+                             f"candidates.positions = {cfg.candidates.count}"))
+    if cfg.policy.belief_features and cfg.policy.claims:
+        problems.append(("policy.belief_features", True,
+                         "false while policy.claims is true (deciding in turn recomputes "
+                         "the view columns only)"))
     if cfg.policy.ahead_branches > cfg.candidates.count:
         problems.append(("policy.ahead_branches", cfg.policy.ahead_branches,
                          f"0 (no lookahead input) to the candidate count 4 x "

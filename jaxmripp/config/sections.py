@@ -159,6 +159,11 @@ class PolicyConfig:
     ahead_branches: int = 0
     ahead_discount: float = 2.0
     ahead_facade_weight: float = 2.0
+    # True: two more inputs, the view's facade weighed by each building's posterior window
+    # rate (`view_windows`, `view_windows_per_cost`: jaxmripp.spec.belief), with this prior
+    # strength (pseudo-windows). The JAX side only: such a policy is not exported
+    belief_features: bool = False
+    belief_strength: float = 3.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -245,6 +250,17 @@ class EvalConfig:
     nbv_ahead_discount: float = 3.0  # weight of nbv_ahead's later flights (tuned)
     nbv_ahead_branches: int = 32  # candidates nbv_ahead follows at each flight (tuned)
     nbv_ahead_flights: int = 2  # flights nbv_ahead looks ahead (2: one beyond the next)
+    # nbv_targets: nbv_ahead's search on the unknown space plus the facade weighed by the
+    # target belief (jaxmripp.spec.belief), with these prior strength, facade weight,
+    # discount and branches (tuned: docs/baselines.md); flights as nbv_ahead. oracle_rate
+    # runs the same search on the buildings' true remaining windows
+    nbv_targets_strength: float = 3.0
+    nbv_targets_facade: float = 2.0
+    nbv_targets_discount: float = 3.0
+    nbv_targets_branches: int = 32
+    # oracle_ahead: the window oracle per unit of cost looking a flight ahead, following
+    # this many first flights (each followed flight casts the sensor from every candidate)
+    oracle_ahead_branches: int = 8
     mcts_simulations: int = 64  # tuned with mcts_depth: docs/baselines.md
     mcts_depth: int = 4
     mcts_considered: int = 4

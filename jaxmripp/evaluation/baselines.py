@@ -16,7 +16,7 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import claims, comms, geometry, gp, lookahead, oracle
+from jaxmripp.sim import belief, claims, comms, geometry, gp, lookahead, oracle
 from jaxmripp.sim.episode import Planner
 from jaxmripp.spec import layout
 from jaxmripp.sim.observation import FEATURES, Observation
@@ -134,14 +134,37 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
     return Planner(name, no_memory, act)
 
 
+def _view_tie(key, obs: Observation) -> jax.Array:
+    """(N, L) tie-break scores for the window oracles: nbv_team's view score (facade
+    weight 2) squashed below 0.1, under one window per unit of cost
+    (`jaxmripp.sim.oracle`), plus a jitter."""
+    jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
+    return 0.1 * jnp.tanh(layout.nbv_score(obs.features, 2.0)) + jitter
+
+
 def oracle_planner(params, name: str = "oracle") -> Planner:
-    """Sequential greedy on the ground truth (`jaxmripp.sim.oracle`): an upper reference,
-    not a fair planner. Ties (e.g. nothing in view) are broken by the greedy utility
-    score, squashed to stay below one window."""
+    """Sequential greedy on the ground truth, windows per unit of flight cost
+    (`jaxmripp.sim.oracle.choose_in_turn`): an upper reference, not a fair planner.
+    Every robot sees what all robots before it chose, whatever the radio's range. Ties
+    (e.g. nothing in view) are broken by the next-best-view score."""
     def act(key, memory, obs, state, dyn=None):
-        jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
-        tie = 0.1 * jnp.tanh(greedy_scores(obs, 1.0, 0.0)) + jitter  # |tie| < 0.5
-        return memory, oracle.choose_in_turn(obs.mask, state, params, tie)
+        return memory, oracle.choose_in_turn(obs.mask, state, params, _view_tie(key, obs),
+                                             per_cost=True)
+
+    return Planner(name, no_memory, act)
+
+
+def oracle_ahead_planner(params, discount=3.0, branches: int = 8,
+                         name: str = "oracle_ahead") -> Planner:
+    """The window oracle per unit of cost looking a flight ahead, robots hearing only the
+    claims of robots in radio range (`jaxmripp.sim.oracle.choose_ahead`): the ceiling the
+    tables quote, never a baseline."""
+    lookahead.check(params, branches, 2)
+
+    def act(key, memory, obs, state, dyn):
+        key_tie, key_ahead = jax.random.split(key)
+        return memory, oracle.choose_ahead(key_ahead, obs.mask, state, dyn, params,
+                                           _view_tie(key_tie, obs), discount, branches)
 
     return Planner(name, no_memory, act)
 
@@ -183,12 +206,36 @@ def nbv_team_planner(params, facade_weight: float = 1.0, name: str = "nbv_team")
 
 
 def nbv_ahead_planner(params, facade_weight: float = 2.0, discount=3.0, branches: int = 32,
-                      flights: int = 2, name: str = "nbv_ahead") -> Planner:
-    """Next-best view in turn looking `flights` flights ahead (`jaxmripp.sim.lookahead`)."""
+                      flights: int = 2, name: str = "nbv_ahead", rates=None) -> Planner:
+    """Next-best view in turn looking `flights` flights ahead (`jaxmripp.sim.lookahead`);
+    with `rates` (a function of the state giving every robot's facade rates (N, G, G),
+    `jaxmripp.sim.belief`) the facade is weighed by them."""
     lookahead.check(params, branches, flights)
 
     def act(key, memory, obs, state, dyn):
-        return memory, lookahead.choose_in_turn(key, obs, state, dyn, params, facade_weight,
-                                                discount, branches, flights)
+        return memory, lookahead.choose_in_turn(
+            key, obs, state, dyn, params, facade_weight, discount, branches, flights,
+            rates=None if rates is None else rates(state))
 
     return Planner(name, no_memory, act)
+
+
+def nbv_targets_planner(params, strength=3.0, facade_weight=2.0, discount=3.0,
+                        branches: int = 32, flights: int = 2,
+                        name: str = "nbv_targets") -> Planner:
+    """`nbv_ahead` with each facade sample weighed by its building's posterior window rate
+    from what the robot's map holds (`jaxmripp.spec.belief`, prior strength `strength`)."""
+    return nbv_ahead_planner(params, facade_weight, discount, branches, flights, name,
+                             rates=lambda state: belief.team_rates(state, strength,
+                                                                   params.sensor, params.world))
+
+
+def oracle_rate_planner(params, facade_weight=2.0, discount=3.0, branches: int = 32,
+                        flights: int = 2, name: str = "oracle_rate") -> Planner:
+    """`nbv_targets` with the true rates: each building's windows the robot has not found
+    over its surface the robot has not seen (`jaxmripp.sim.belief.true_rates`). It knows
+    how many windows are left on a building, not where on it: an upper reference of what
+    a better belief can be worth, never a baseline."""
+    return nbv_ahead_planner(params, facade_weight, discount, branches, flights, name,
+                             rates=lambda state: belief.true_rates(state, params.sensor,
+                                                                   params.world))

@@ -70,8 +70,19 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
     if name == "nbv_ahead":
         return baselines.nbv_ahead_planner(params, get("nbv_team_facade"), get("nbv_ahead_discount"),
                                  get("nbv_ahead_branches"), get("nbv_ahead_flights"))
+    if name == "nbv_targets":
+        return baselines.nbv_targets_planner(
+            params, get("nbv_targets_strength"), get("nbv_targets_facade"),
+            get("nbv_targets_discount"), get("nbv_targets_branches"), get("nbv_ahead_flights"))
     if name == "oracle":
         return baselines.oracle_planner(params)
+    if name == "oracle_ahead":
+        return baselines.oracle_ahead_planner(params, get("nbv_targets_discount"),
+                                              get("oracle_ahead_branches"))
+    if name == "oracle_rate":
+        return baselines.oracle_rate_planner(
+            params, get("nbv_targets_facade"), get("nbv_targets_discount"),
+            get("nbv_targets_branches"), get("nbv_ahead_flights"))
     if name == "mcts":
         from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
 
@@ -84,7 +95,8 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return rig_planner(params, iterations=get("rig_iterations"), max_depth=get("rig_depth"),
                            kappa=get("rig_kappa"))
     raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, nbv, "
-                     "nbv_team, nbv_ahead, mcts, rig, oracle (and policy, which needs --policy)")
+                     "nbv_team, nbv_ahead, nbv_targets, mcts, rig, oracle, oracle_ahead, "
+                     "oracle_rate (and policy, which needs --policy)")
 
 
 # Defaults of the EvalConfig fields read beyond the base ones; used while

@@ -35,7 +35,7 @@ from typing import Callable, Sequence
 from jaxmripp.config import Config
 from jaxmripp.evaluation import cells, evaluate
 from jaxmripp.sim.episode import Planner
-from jaxmripp.sim.params import StaticAhead
+from jaxmripp.sim.params import StaticAhead, StaticBelief
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
 from jaxmripp.evaluation.planners import baseline_planner, deployed, eval_setting
 from jaxmripp.evaluation.stats import mean_ci, welch_ttest
@@ -226,9 +226,9 @@ def _run_group(cfg: Config, group: list[Shape], names: list[str],
     params = evaluate.eval_params(cfg, [s.budget for s in group], layout=e.layout,
                                   robots=n, size=size)
     dynamics = [evaluate.eval_dynamic(cfg, s.budget, s.radio_range) for s in group]
-    # Only the policies read the lookahead input (policy.ahead_branches, set for them by
-    # pipeline.with_policy_inputs); the baselines' environments skip computing it.
-    plain = dataclasses.replace(params, ahead=StaticAhead())
+    # Only the policies read the lookahead and belief inputs (policy.ahead_*, belief_*, set
+    # for them by pipeline.with_policy_inputs); the baselines' environments skip them.
+    plain = dataclasses.replace(params, ahead=StaticAhead(), belief=StaticBelief())
     runs = []
     for name in names:
         planner_params = params if name in policies else plain

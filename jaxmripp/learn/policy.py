@@ -259,4 +259,4 @@ def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
 def input_keep(config: PolicyConfig) -> np.ndarray:
     """(F,) 1/0 multipliers of the input columns (`jaxmripp.spec.layout.input_keep`)."""
     return layout.input_keep(config.comm_features, config.view_features, config.intent_features,
-                             config.ahead_branches > 0)
+                             config.ahead_branches > 0, config.belief_features)

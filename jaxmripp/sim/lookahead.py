@@ -12,7 +12,9 @@ sequence of up to `flights` flights starting with it, whichever is larger; for t
     v(a) = max(g(a) / c(a), max_b (g(a) + discount g(b | a)) / (c(a) + discount c(b))),
 
 where g is `nbv_team`'s gain (unknown voxels in view plus the facade weight times the
-unknown facade voxels in view, `jaxmripp.spec.view`), c the flight cost, and b ranges
+unknown facade voxels in view, `jaxmripp.spec.view`; with a robot's facade rates, the
+`nbv_targets` baseline, the facade samples weighed by the target belief,
+`jaxmripp.spec.belief`), c the flight cost, and b ranges
 over candidates drawn around `a` as the environment would draw them
 (`jaxmripp.sim.candidates.sample`, with the budget left after `a`), scored on the map with
 `a`'s view counted as seen. A third flight adds discount^2 g(c | a, b) and discount^2 c(c)
@@ -52,15 +54,16 @@ class Search:
     dyn: DynamicParams
     others: jax.Array  # (N, 3) all robots' positions
     heard: jax.Array  # (N,) bool the robots this one hears
-    facade_weight: float = struct.field(pytree_node=False)
+    facade_weight: float | jax.Array
     discount: jax.Array | float
     branches: int = struct.field(pytree_node=False)
+    rates: jax.Array | None = None  # (G, G) int32 facade rates weighing the facade, or None
 
 
-def next_flight(search: Search, occupancy, top, position, heading, budget_left, key):
+def draw_following(search: Search, occupancy, top, position, heading, budget_left, key):
     """What a robot could do after reaching the pose (position (3,), heading ()) with
-    `budget_left`: its map (G, G, G) with that pose's view counted as seen, the candidates
-    drawn around the pose ((L,) as `cands.sample` gives them) and their gains (L,) on it."""
+    `budget_left`: its map (G, G, G) with that pose's view counted as seen and the
+    candidates drawn around the pose ((L,) as `cands.sample` gives them) on it."""
     params, size = search.params, search.params.size
     seen = view.unknown_in_view(occupancy, top, position, heading, params.sensor, size)
     after = occupancy.reshape(-1).at[seen].set(geometry.FREE, mode="drop").reshape(
@@ -68,10 +71,25 @@ def next_flight(search: Search, occupancy, top, position, heading, budget_left, 
     following = cands.sample(key, position, heading, budget_left, after, search.others,
                              search.heard, params.candidates, params.safety,
                              search.dyn.turn_cost, search.dyn.collision_distance, size)
-    unknown, facade = view.view_gain(after, top, following.position[::geometry.N_HEADINGS],
-                                     params.sensor, size)
-    return after, following, layout.view_value(unknown.reshape(-1), facade.reshape(-1),
-                                               search.facade_weight)
+    return after, following
+
+
+def gains(search: Search, occupancy, top, positions) -> jax.Array:
+    """(L,) the search's gain g of the candidates at `positions` (K, 3), in groups of the
+    N_HEADINGS headings, on the map (G, G, G)."""
+    params = search.params
+    values = view.view_gain(occupancy, top, positions, params.sensor, params.size,
+                            rates=search.rates)
+    facade = values[1] if search.rates is None else values[2]
+    return layout.view_value(values[0].reshape(-1), facade.reshape(-1), search.facade_weight)
+
+
+def next_flight(search: Search, occupancy, top, position, heading, budget_left, key):
+    """`draw_following` and the candidates' gains (L,) on the map after the pose."""
+    after, following = draw_following(search, occupancy, top, position, heading,
+                                      budget_left, key)
+    return after, following, gains(search, after, top,
+                                   following.position[::geometry.N_HEADINGS])
 
 
 def continuation(search: Search, occupancy, top, position, heading, budget_left, gained,
@@ -104,10 +122,15 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
     """(L,) v(a) of the module docstring for robot i's `branches` best candidates by
     nbv_team's score, -inf for the others and for infeasible ones, and (L,) that score
     (the one-step rate). `mine` is the robot's observation (L, F) on `occupancy`, its map
-    with its peers' claims counted as seen."""
+    with its peers' claims counted as seen; with facade rates (`search.rates`) the first
+    gains are computed on that map, else read from the observation's view columns."""
     shell = search.params.candidates.shell[1]
-    first_gain = layout.view_value(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
-                                   search.facade_weight)
+    if search.rates is None:
+        first_gain = layout.view_value(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
+                                       search.facade_weight)
+    else:
+        first_gain = gains(search, occupancy, top,
+                           candidates.position[::geometry.N_HEADINGS])
     rate = view.per_cost(first_gain, candidates.cost, shell)
     top_rate, order = jax.lax.top_k(jnp.where(mine.mask, rate, -jnp.inf), search.branches)
 
@@ -155,10 +178,11 @@ def with_ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
 
 def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
                    params: EnvParams, facade_weight: float, discount, branches: int,
-                   flights: int) -> jax.Array:
+                   flights: int, rates: jax.Array | None = None) -> jax.Array:
     """The team's choices (N,) int32: robots in index order (`claims.in_turn`), each taking
     the candidate with the largest `lookahead_values` over `flights` flights (ties broken
-    at random, as nbv_team's). One environment: callers vmap."""
+    at random, as nbv_team's); with `rates` (N, G, G) int32 each robot weighs the facade by
+    its facade rates (`jaxmripp.sim.belief`). One environment: callers vmap."""
     check(params, branches, flights)
     key_jitter, key_ahead = jax.random.split(key)
     jitter = 1e-6 * jax.random.uniform(key_jitter, obs.mask.shape)
@@ -166,7 +190,7 @@ def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
 
     def decide(i, mine, occupancy):
         search = Search(params, dyn, state.position, state.heard[i], facade_weight, discount,
-                        branches)
+                        branches, None if rates is None else rates[i])
         c = jax.tree.map(lambda x: x[i], state.candidates)
         values, _ = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i],
                                      c, state.budget_left[i], flights)

@@ -5,8 +5,9 @@ The env fills an `Observation` per robot; the policy reads one robot's observati
 axes). `observe` builds the team's observations from an `EnvState`.
 
 Shapes (L candidates, F = EnvParams.n_features, S = len(ROBOT_STATE), N robots):
-    features      (..., L, F)        float32, columns in FEATURES order, then the lookahead
-                                     input where configured (`jaxmripp.spec.layout`)
+    features      (..., L, F)        float32, columns in FEATURES order, then the belief
+                                     and lookahead inputs where configured
+                                     (`jaxmripp.spec.layout.features`)
     mask          (..., L)           bool, True = feasible candidate
     robot_state   (..., S)           float32, columns in ROBOT_STATE order
     global_state  (..., N * S + 2)   float32, every robot's robot_state (robot-major),
@@ -21,7 +22,7 @@ import flax.struct
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import geometry, gp, view
+from jaxmripp.sim import belief, geometry, gp, view
 from jaxmripp.config import SensorConfig
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.sim.types import EnvState, discovered_fraction
@@ -31,7 +32,7 @@ from jaxmripp.sim.types import EnvState, discovered_fraction
 # robot; x, y, z absolute position; one-hot heading; posterior mean and standard deviation
 # of the utility and communication GPs; path cost; budget left after the move.
 # ROBOT_STATE: position, one-hot heading, budget left, step counter.
-from jaxmripp.spec.layout import FEATURE_GROUPS, FEATURES, ROBOT_STATE
+from jaxmripp.spec.layout import BELIEF_FEATURES, FEATURE_GROUPS, FEATURES, ROBOT_STATE
 from jaxmripp.spec import sectors as sectors_spec
 
 N_FEATURES = len(FEATURES)  # F = 21
@@ -84,6 +85,13 @@ def _stacked_view_columns(gains, cost: jax.Array, shell_outer: float) -> jax.Arr
                       view.per_cost(facade, cost, shell_outer)], axis=-1)
 
 
+def _belief_columns(windows: jax.Array, cost: jax.Array, shell_outer: float) -> jax.Array:
+    """view_windows (..., K, N_HEADINGS) and costs (..., L) -> the BELIEF columns (..., L,
+    2): view_windows and view_windows_per_cost (`jaxmripp.spec.belief`)."""
+    windows = windows.reshape(cost.shape)
+    return jnp.stack([windows, view.per_cost(windows, cost, shell_outer)], axis=-1)
+
+
 def observe(state: EnvState, params: EnvParams) -> Observation:
     """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
 
@@ -102,9 +110,13 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
-    gain_columns = _stacked_view_columns(view.team_view_gain(
-        state.team_map, state.building_top, c.position[:, ::geometry.N_HEADINGS],
-        state.position, params.sensor, params.size), c.cost, shell)
+    rates = (belief.team_rates(state, params.belief.strength, params.sensor, params.world)
+             if params.belief.features else None)
+    gains = view.team_view_gain(state.team_map, state.building_top,
+                                c.position[:, ::geometry.N_HEADINGS], state.position,
+                                params.sensor, params.size, rates=rates)
+    gain_columns = _stacked_view_columns(gains[:2], c.cost, shell)
+    belief_columns = [] if rates is None else [_belief_columns(gains[2], c.cost, shell)]
     peers = jax.vmap(view.peer_distance, in_axes=(0, None, 0, None))(
         c.position, state.position, state.heard, shell)
     features = jnp.concatenate([
@@ -117,6 +129,7 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
         ((state.budget_left[:, None] - c.cost) / budget)[..., None],
         gain_columns,
         peers[..., None],
+        *belief_columns,
     ], axis=-1)
     robot_state = jnp.concatenate([
         state.position,
@@ -129,7 +142,8 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
         jnp.stack([discovered_fraction(state), jnp.mean(state.budget_left) / budget]),
     ])
     mask = c.valid & ~state.done[:, None]
-    chex.assert_shape(features, (n, params.n_candidates, N_FEATURES))
+    chex.assert_shape(features, (n, params.n_candidates,
+                                 N_FEATURES + len(belief_columns) * len(BELIEF_FEATURES)))
     chex.assert_shape(robot_state, (n, N_ROBOT_STATE))
     return Observation(features=features.astype(jnp.float32), mask=mask,
                        robot_state=robot_state.astype(jnp.float32),

@@ -46,6 +46,15 @@ class StaticAhead:
 
 
 @dataclasses.dataclass(frozen=True)
+class StaticBelief:
+    """The target-belief input (`view_windows`, jaxmripp.spec.belief); features False:
+    none."""
+
+    features: bool = False
+    strength: float = 3.0
+
+
+@dataclasses.dataclass(frozen=True)
 class EnvParams:
     world: WorldConfig
     robots: StaticRobots
@@ -56,6 +65,7 @@ class EnvParams:
     gp: GPConfig
     max_steps: int  # T_max; history length T_max + 1
     ahead: StaticAhead = StaticAhead()
+    belief: StaticBelief = StaticBelief()
 
     @classmethod
     def from_config(cls, cfg: Config) -> "EnvParams":
@@ -66,7 +76,8 @@ class EnvParams:
                                      cfg.radio.map_reach),
                    candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps,
                    ahead=StaticAhead(cfg.policy.ahead_branches, cfg.policy.ahead_discount,
-                                     cfg.policy.ahead_facade_weight))
+                                     cfg.policy.ahead_facade_weight),
+                   belief=StaticBelief(cfg.policy.belief_features, cfg.policy.belief_strength))
 
     @property
     def size(self) -> int:
@@ -83,7 +94,7 @@ class EnvParams:
     @property
     def n_features(self) -> int:
         """F, the width of an observation's features (jaxmripp.spec.layout.features)."""
-        return len(layout.features(self.ahead.branches > 0))
+        return len(layout.features(self.ahead.branches > 0, self.belief.features))
 
     @property
     def utility_gps(self) -> int:

@@ -22,6 +22,7 @@ from jaxmripp.sim import geometry, maps
 from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.sim.geometry import take_flat
 from jaxmripp.sim.sensing import CastResult, scatter_max
+from jaxmripp.spec import belief as belief_spec
 from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
 
@@ -108,30 +109,58 @@ def _total_weight(sensor: SensorConfig, size: int) -> int:
     return spec.RAYS_PER_SIDE**2 * int(weights.sum())
 
 
-def _codes(read, camera: jax.Array, offsets: jax.Array,
-           size: int) -> tuple[jax.Array, jax.Array]:
+def _codes(read, camera: jax.Array, offsets: jax.Array, size: int, rated: bool = False):
     """Camera voxels (..., 3) plus voxel offsets (..., 3) (broadcast) -> the samples' flat
     voxel indices and marked codes, read by `read(flat, x, y, z)` at the clipped voxels,
-    OCCUPIED outside the grid."""
+    OCCUPIED outside the grid. A `rated` reader returns (code, quantised facade rate,
+    `jaxmripp.spec.belief`), and so does this, with rate 0 outside the grid."""
     x, y, z = (camera[..., a] + offsets[..., a] for a in range(3))
     inside = (x >= 0) & (x < size) & (y >= 0) & (y < size) & (z >= 0) & (z < size)
     x, y, z = (jnp.clip(v, 0, size - 1) for v in (x, y, z))
     flat = (x * size + y) * size + z
-    return flat, jnp.where(inside, read(flat, x, y, z), jnp.int8(OCCUPIED))
+    if not rated:
+        return flat, jnp.where(inside, read(flat, x, y, z), jnp.int8(OCCUPIED))
+    code, rate = read(flat, x, y, z)
+    return flat, jnp.where(inside, code, jnp.int8(OCCUPIED)), jnp.where(inside, rate, 0)
 
 
 def _gain_sums(marked: jax.Array, camera: jax.Array, sensor: SensorConfig,
-               size: int) -> tuple[jax.Array, jax.Array]:
+               size: int) -> tuple[jax.Array, ...]:
     """One robot's marked map, camera voxels (K, 3) -> the integer sums (unknown, facade),
     each (K, 4) int32, of the gain samples' weights."""
-    return _heading_sums(_ray_sums(_map_reader(marked), camera, sensor, size))
+    return _heading_sums(_ray_sums(_map_reader(marked), camera, sensor, size), sensor, size)
 
 
-def _ray_sums(read, camera: jax.Array, sensor: SensorConfig,
-              size: int) -> tuple[jax.Array, ...]:
+def _column_table(near: jax.Array, rates: jax.Array) -> jax.Array:
+    """Facade tops and quantised facade rates (..., G, G) -> one int32 per column, the top
+    in the low byte and the rate above it: a rated sample reads both with one gather."""
+    return near.astype(jnp.int32) | (rates << 8)
+
+
+def _rated_sums(occupancy: jax.Array, table: jax.Array, camera: jax.Array,
+                sensor: SensorConfig, size: int) -> tuple[jax.Array, ...]:
+    """`_gain_sums` of one robot's map (G, G, G) with its column table (G, G)
+    (`_column_table`), then its rate-weighted facade sums (K, 4)."""
+    codes, columns = occupancy.reshape(-1), table.reshape(-1)
+
+    def read(flat, x, y, z):
+        column = take_flat(columns, x * size + y)
+        return _marked_code(take_flat(codes, flat), column & 0xFF, z, sensor), column >> 8
+
+    return _heading_sums(_ray_sums(read, camera, sensor, size, rated=True), sensor, size)
+
+
+def _packed(sensor: SensorConfig, size: int) -> bool:
+    """Whether `_ray_sums` packs the unknown and facade sums into one int32."""
+    return _total_weight(sensor, size) < 1 << 15
+
+
+def _ray_sums(read, camera: jax.Array, sensor: SensorConfig, size: int,
+              rated: bool = False) -> tuple[jax.Array, ...]:
     """`_gain_sums` per ray, (K, 4 * R) int32 each, with codes from `read` (see `_codes`;
     it reads samples (K, 4 * R)), in the layout `_heading_sums` reads: (packed,) while
-    both totals fit 15 bits, else (unknown, facade).
+    both totals fit 15 bits (`_packed`), else (unknown, facade); with a `rated` reader
+    (see `_codes`) then the rate-weighted facade sums.
 
     Integer sums are exact in any order. While both totals fit 15 bits (ranges up to about
     75 voxels) they share one int32, unknown weight in the low 16 bits and facade weight
@@ -143,14 +172,19 @@ def _ray_sums(read, camera: jax.Array, sensor: SensorConfig,
     # arrays would be written to memory and read back.
     per_distance = np.moveaxis(offsets, 1, 0).reshape(len(weights), 1, -1, 3)
     camera = camera[:, None, :]
-    packed = _total_weight(sensor, size) < 1 << 15
+    packed = _packed(sensor, size)
     unknown_sum = jnp.zeros((camera.shape[0], 4 * rays), jnp.int32)
     facade_sum = jnp.zeros_like(unknown_sum)
+    windows_sum = jnp.zeros_like(unknown_sum)
+    if rated:
+        _check_rate_sums(sensor, size)
     clear = jnp.ones(unknown_sum.shape, bool)
     for s, w in enumerate(weights.astype(int)):
-        _, code = _codes(read, camera, per_distance[s], size)
+        code, *rate = _codes(read, camera, per_distance[s], size, rated)[1:]
         unknown = clear & ((code == UNKNOWN) | (code == FACADE))
         facade = clear & (code == FACADE)
+        if rated:
+            windows_sum = windows_sum + jnp.where(facade, jnp.int32(w) * rate[0], 0)
         if packed:
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0) \
                 + jnp.where(facade, jnp.int32(w << 16), 0)
@@ -158,38 +192,60 @@ def _ray_sums(read, camera: jax.Array, sensor: SensorConfig,
             unknown_sum = unknown_sum + jnp.where(unknown, jnp.int32(w), 0)
             facade_sum = facade_sum + jnp.where(facade, jnp.int32(w), 0)
         clear = clear & (code != OCCUPIED)
-    return (unknown_sum,) if packed else (unknown_sum, facade_sum)
+    sums = (unknown_sum,) if packed else (unknown_sum, facade_sum)
+    return sums + ((windows_sum,) if rated else ())
 
 
-def _heading_sums(ray_sums: tuple[jax.Array, ...]) -> tuple[jax.Array, jax.Array]:
-    """`_ray_sums` -> the sums (unknown, facade) per heading, (K, 4) each."""
+def _check_rate_sums(sensor: SensorConfig, size: int) -> None:
+    """The rate-weighted sums must fit int32."""
+    largest = _total_weight(sensor, size) * belief_spec.RATE_CAP * belief_spec.RATE_SCALE
+    if largest >= 2**31:
+        raise ValueError(f"view_windows: sensor.range {sensor.range} at G = {size} gives "
+                         f"sums up to {largest}; allowed: below 2^31 (a shorter range)")
+
+
+def _heading_sums(ray_sums: tuple[jax.Array, ...], sensor: SensorConfig,
+                  size: int) -> tuple[jax.Array, ...]:
+    """`_ray_sums` -> the sums (unknown, facade[, windows]) per heading, (K, 4) each."""
     rays = spec.RAYS_PER_SIDE**2
     sums = tuple(x.reshape(x.shape[0], 4, rays).sum(-1) for x in ray_sums)
-    return (sums[0] & 0xFFFF, sums[0] >> 16) if len(sums) == 1 else sums
+    if _packed(sensor, size):
+        return (sums[0] & 0xFFFF, sums[0] >> 16) + sums[1:]
+    return sums
 
 
-def _scaled(sums: tuple[jax.Array, jax.Array], sensor: SensorConfig,
-            size: int) -> tuple[jax.Array, jax.Array]:
-    """Integer weight sums -> the gains, fractions of the largest possible sum."""
-    scale = np.float32(1) / np.float32(_total_weight(sensor, size))
-    return tuple(total.astype(jnp.float32) * scale for total in sums)
+def _scaled(sums: tuple[jax.Array, ...], sensor: SensorConfig,
+            size: int) -> tuple[jax.Array, ...]:
+    """Integer weight sums -> the gains, fractions of the largest possible sum (a third,
+    rate-weighted sum also divided by RATE_SCALE)."""
+    total = _total_weight(sensor, size)
+    scales = [np.float32(1) / np.float32(total)] * 2 \
+        + [np.float32(1) / np.float32(total * belief_spec.RATE_SCALE)]
+    return tuple(x.astype(jnp.float32) * scale for x, scale in zip(sums, scales))
 
 
 def view_gain(occupancy: jax.Array, top: jax.Array, position: jax.Array,
-              sensor: SensorConfig, size: int) -> tuple[jax.Array, jax.Array]:
+              sensor: SensorConfig, size: int,
+              rates: jax.Array | None = None) -> tuple[jax.Array, ...]:
     """One robot's map (G, G, G) int8 and building tops (G, G) int8, positions (K, 3) ->
-    (view_unknown, view_facade), each (K, 4) float32 per position and heading."""
-    marked = _marked_map(occupancy, facade_tops(top, sensor), sensor, size)
+    (view_unknown, view_facade), each (K, 4) float32 per position and heading; with the
+    robot's quantised facade rates (G, G) int32 (`jaxmripp.sim.belief.facade_rates`) also
+    view_windows (`jaxmripp.spec.belief`), (K, 4)."""
+    near = facade_tops(top, sensor)
     camera = geometry.voxel_of(position, size)
-    return _scaled(_gain_sums(marked, camera, sensor, size), sensor, size)
+    if rates is None:
+        sums = _gain_sums(_marked_map(occupancy, near, sensor, size), camera, sensor, size)
+    else:
+        sums = _rated_sums(occupancy, _column_table(near, rates), camera, sensor, size)
+    return _scaled(sums, sensor, size)
 
 
 def team_view_gain(team_map: jax.Array, top: jax.Array, position: jax.Array,
-                   origin: jax.Array, sensor: SensorConfig,
-                   size: int) -> tuple[jax.Array, jax.Array]:
+                   origin: jax.Array, sensor: SensorConfig, size: int,
+                   rates: jax.Array | None = None) -> tuple[jax.Array, ...]:
     """`view_gain` for a team: its team map (W, G, G, G) (`sim.maps`), tops (N, G, G),
-    positions (N, K, 3) and each robot's own position (N, 3) -> (N, K, 4) each, equal to
-    `view_gain` on each robot's map.
+    positions (N, K, 3), each robot's own position (N, 3) and optionally its facade rates
+    (N, G, G) int32 -> (N, K, 4) each, equal to `view_gain` on each robot's map.
 
     The gain depends on the camera voxel only, and the positions that share the robot's
     voxel (padding candidates sit at the robot) take its gain, computed once. Under `vmap`
@@ -197,8 +253,10 @@ def team_view_gain(team_map: jax.Array, top: jax.Array, position: jax.Array,
     gain are gathered across the whole batch and computed in chunks, as many as there are:
     the work follows the candidates there are rather than the slots.
     """
-    unknown, facade = _team_gains(sensor, size, top.shape[0])(team_map, top, position, origin)
-    return _scaled((unknown, facade), sensor, size)
+    extra = () if rates is None else (rates,)
+    sums = _team_gains(sensor, size, top.shape[0], bool(extra))(team_map, top, position,
+                                                                 origin, *extra)
+    return _scaled(sums, sensor, size)
 
 
 _CHUNKS = 32  # the needed positions are computed in chunks of 1 / _CHUNKS of the slots
@@ -206,12 +264,13 @@ _FLAT_LIMIT = 2**31  # flat indices into all maps at once must stay below this (
 
 
 def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Array,
-                 needed: jax.Array, sensor: SensorConfig, size: int):
+                 needed: jax.Array, sensor: SensorConfig, size: int, rated: bool = False):
     """The gain sums of the needed entries (P,) in their order, each (P, 4) int32 (rows
     past their count are 0): computed chunk by chunk, only as many chunks as are needed.
 
     `team` are E team maps (E, W, G, G, G) and `near` the facade tops (E * N, G, G) of
-    their robots; entry p belongs to robot p // (K + 1) of that folded order. A sample
+    their robots (or, rated, their column tables, `_column_table`); entry p belongs to
+    robot p // (K + 1) of that folded order. A sample
     reads its map byte and its column's facade top and decodes them for its robot, so
     no robot's map is ever written out. The loop keeps the sums per ray and adds up the
     rays after it: each chunk is then one elementwise pass, which XLA:CPU runs faster than
@@ -232,36 +291,45 @@ def _listed_sums(team: jax.Array, n_robots: int, near: jax.Array, camera: jax.Ar
 
         def read(flat, x, y, z):
             code = maps.codes_at(words, robot % n_robots, (robot // n_robots) * cells + flat)
-            return _marked_code(code, take_flat(near, (robot * size + x) * size + y), z,
-                                sensor)
+            column = take_flat(near, (robot * size + x) * size + y)
+            if not rated:
+                return _marked_code(code, column, z, sensor)
+            return _marked_code(code, column & 0xFF, z, sensor), column >> 8
 
-        part = _ray_sums(read, camera[at], sensor, size)
+        part = _ray_sums(read, camera[at], sensor, size, rated)
         return tuple(jax.lax.dynamic_update_slice_in_dim(s, p, i * chunk, 0)
                      for s, p in zip(sums, part))
 
-    shapes = jax.eval_shape(
-        lambda c: _ray_sums(lambda flat, *_: jnp.zeros(flat.shape, jnp.int8), c, sensor, size),
-        camera[:chunk])
+    def zero(flat, *_):
+        code = jnp.zeros(flat.shape, jnp.int8)
+        return (code, jnp.zeros(flat.shape, jnp.int32)) if rated else code
+
+    shapes = jax.eval_shape(lambda c: _ray_sums(zero, c, sensor, size, rated), camera[:chunk])
     empty = tuple(jnp.zeros((chunk * _CHUNKS, *x.shape[1:]), x.dtype) for x in shapes)
     sums = jax.lax.fori_loop(0, (count + chunk - 1) // chunk, one_chunk, empty)
-    return _heading_sums(sums)
+    return _heading_sums(sums, sensor, size)
 
 
 @functools.lru_cache(maxsize=None)
-def _team_gains(sensor: SensorConfig, size: int, n_robots: int):
-    """The integer sums of `team_view_gain` as a function of arrays only, batched by folding
-    (a custom_vmap needs its static arguments closed over)."""
+def _team_gains(sensor: SensorConfig, size: int, n_robots: int, rated: bool = False):
+    """The integer sums of `team_view_gain` as a function of arrays only (team, top,
+    position, origin, and with `rated` the facade rates), batched by folding (a
+    custom_vmap needs its static arguments closed over)."""
 
-    @jax.custom_batching.custom_vmap
-    def gains(team, top, position, origin):
+    def sums_of(team, top, position, origin, rates=None):
         robots, slots = position.shape[:2]
         near = jax.vmap(facade_tops, in_axes=(0, None))(top, sensor)
+        if rates is not None:
+            near = _column_table(near, rates)
         if robots * size**3 >= _FLAT_LIMIT:  # robot by robot, every slot
             robot_maps = maps.robot_maps(team, n_robots).reshape(robots, size, size, size)
+            camera = geometry.voxel_of(position, size)
+            if rates is not None:
+                return jax.vmap(lambda m, t, c: _rated_sums(m, t, c, sensor, size))(
+                    robot_maps, near, camera)
             marked = jax.vmap(_marked_map, in_axes=(0, 0, None, None))(robot_maps, near,
                                                                        sensor, size)
-            return jax.vmap(lambda m, c: _gain_sums(m, c, sensor, size))(
-                marked, geometry.voxel_of(position, size))
+            return jax.vmap(lambda m, c: _gain_sums(m, c, sensor, size))(marked, camera)
         # Each robot's slots, then its own voxel; a slot needs its own gain unless it is in
         # that voxel.
         own = geometry.voxel_of(origin, size)[:, None, :]
@@ -269,24 +337,33 @@ def _team_gains(sensor: SensorConfig, size: int, n_robots: int):
         needed = jnp.concatenate([jnp.any(camera[:, :slots] != own, axis=-1),
                                   jnp.ones((robots, 1), bool)], axis=1)
         sums = _listed_sums(team, n_robots, near, camera.reshape(-1, 3), needed.reshape(-1),
-                            sensor, size)
+                            sensor, size, rates is not None)
         # Where each slot's sums were listed: at its own rank, or at its robot's voxel's.
         rank = (jnp.cumsum(needed.reshape(-1)) - 1).reshape(robots, slots + 1)
         source = jnp.where(needed, rank, rank[:, -1:])[:, :slots]
         return tuple(s[source] for s in sums)
 
-    @gains.def_vmap
-    def gains_vmap(axis_size, in_batched, team, top, position, origin):
+    if rated:
+        gains = jax.custom_batching.custom_vmap(
+            lambda team, top, position, origin, rates: sums_of(team, top, position, origin,
+                                                               rates))
+    else:
+        gains = jax.custom_batching.custom_vmap(
+            lambda team, top, position, origin: sums_of(team, top, position, origin))
+
+    def gains_vmap(axis_size, in_batched, *args):
         # An argument without the axis is broadcast: for maps that is a copy per entry,
         # so the env vmaps maps and candidates together. The robots fold into one axis;
         # the team maps keep theirs, N robots to a map.
         args = [x if b else jnp.broadcast_to(x, (axis_size, *x.shape))
-                for x, b in zip((team, top, position, origin), in_batched)]
+                for x, b in zip(args, in_batched)]
         robots = args[2].shape[1]
         folded = [x.reshape(axis_size * robots, *x.shape[2:]) for x in args[1:]]
-        return tuple(s.reshape(axis_size, robots, *s.shape[1:])
-                     for s in gains(args[0], *folded)), (True, True)
+        sums = gains(args[0], *folded)
+        return tuple(s.reshape(axis_size, robots, *s.shape[1:]) for s in sums), \
+            (True,) * len(sums)
 
+    gains.def_vmap(gains_vmap)
     return gains
 
 

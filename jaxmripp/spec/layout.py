@@ -44,6 +44,12 @@ so such candidates may be followed in either order. The env draws robot i's k-th
 from `jax.random.split(key_i, n)[k]`, key_i = `jax.random.split(fold_in(step key, 1),
 N)[i]`; the runtime from its own generator, after the candidates' draws.
 
+BELIEF INPUT (`policy.belief_features`): two more columns after FEATURES (before the
+lookahead input), `view_windows` and `view_windows_per_cost` (`features(belief=True)`):
+the facade gain weighed by the robot's target belief, with prior strength
+`policy.belief_strength` (the rule is written in `jaxmripp.spec.belief`). The NumPy
+runtime does not compute them yet: such a policy is not exported.
+
 DECIDING IN TURN (`policy.claims`): robots choose in index order, and robot i's four VIEW
 columns are computed on its map with the unknown samples in view of the chosen poses of
 the robots j < i it hears (each on robot j's map) set FREE (`jaxmripp.sim.claims`). The
@@ -69,6 +75,8 @@ FEATURES = (
     "peer_distance",
 )  # fmt: skip
 AHEAD_FEATURES = ("ahead_rate",)  # appended to FEATURES with policy.ahead_branches > 0
+# after FEATURES, before AHEAD_FEATURES, with policy.belief_features
+BELIEF_FEATURES = ("view_windows", "view_windows_per_cost")
 ROBOT_STATE = (
     "x", "y", "z",
     "heading_0", "heading_1", "heading_2", "heading_3",
@@ -77,9 +85,10 @@ ROBOT_STATE = (
 N_GLOBAL_EXTRA = 2
 
 
-def features(ahead: bool = False) -> tuple[str, ...]:
-    """The policy's input columns: FEATURES, then AHEAD_FEATURES with the lookahead input."""
-    return FEATURES + AHEAD_FEATURES if ahead else FEATURES
+def features(ahead: bool = False, belief: bool = False) -> tuple[str, ...]:
+    """The policy's input columns: FEATURES, then BELIEF_FEATURES with the belief input,
+    then AHEAD_FEATURES with the lookahead input."""
+    return FEATURES + (BELIEF_FEATURES if belief else ()) + (AHEAD_FEATURES if ahead else ())
 
 
 FEATURE_GROUPS = {
@@ -121,12 +130,12 @@ def masked_argmax(scores, mask, xp=np):
 
 
 def input_keep(comm: bool = True, view: bool = True, intent: bool = True,
-               ahead: bool = False) -> np.ndarray:
-    """(F,) float32 1/0 multipliers of the `features(ahead)` columns: 0 for an ablated
-    group."""
+               ahead: bool = False, belief: bool = False) -> np.ndarray:
+    """(F,) float32 1/0 multipliers of the `features(ahead, belief)` columns: 0 for an
+    ablated group."""
     dropped = set()
     for group, kept in (("comm", comm), ("view", view), ("intent", intent)):
         if not kept:
             dropped.update(FEATURE_GROUPS[group])
-    return np.asarray([0.0 if name in dropped else 1.0 for name in features(ahead)],
+    return np.asarray([0.0 if name in dropped else 1.0 for name in features(ahead, belief)],
                       np.float32)
