@@ -1,6 +1,7 @@
 """Training throughput: rollout (env + policy) vs policy alone, and PPO update speed.
 
-python benchmarks/train.py [--envs 1024] [--steps 16] [--no-update] [section.key=value ...]
+python benchmarks/train.py [--envs 1024] [--steps 16] [--no-update] [--loop CHUNKS]
+    [section.key=value ...]
 Prints JSON lines; all figures come from one run, so their ratio is meaningful. Rollout
 and policy-only calls alternate for --rounds rounds, so both see the same machine load;
 rates are medians over rounds and the ratio is the median of the per-round ratios.
@@ -13,11 +14,21 @@ docs/performance.md, "Rollout against the policy alone"); the default config's w
 network is much cheaper. With the update timed it also prints
 `train.env_share_of_iteration`: the environment's share (rollout minus policy) of one
 rollout plus its PPO update, which is what decides whether the environment slows training.
+
+`--loop CHUNKS` times the training loop itself instead (`jaxmripp.learn.train.train` into a
+temporary folder): CHUNKS + 1 chunks of `train.updates_per_chunk` updates, and
+`train.loop_agent_steps_per_s` from the median time between the ends of consecutive
+chunks after the first (which compiles), metrics and checkpoints included. It uses only
+`train(cfg, run_dir, log=...)`, so the script can time another version of the package
+(put it first on PYTHONPATH) on the same config.
 """
 
 import os
 import statistics
 import sys
+import tempfile
+import time
+from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -40,10 +51,15 @@ def main() -> None:
                         help="alternating rollout / policy-only timings (and update repeats)")
     parser.add_argument("--no-update", action="store_true",
                         help="skip the PPO update timing (the slowest part at 1024 envs)")
+    parser.add_argument("--loop", type=int, default=0, metavar="CHUNKS",
+                        help="time CHUNKS chunks of the training loop instead (after one more)")
     parser.add_argument("overrides", nargs="*")
     args = parser.parse_args()
     cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
                                     f"train.rollout_steps={args.steps}", *args.overrides])
+    if args.loop:
+        time_loop(args, cfg)
+        return
     trainer = trainmod.Trainer.build(cfg)
     state = trainer.init()
     dyn = trainer.env_dynamic
@@ -106,6 +122,24 @@ def main() -> None:
     emit("train.env_share_of_iteration", seconds_env / (seconds_rollout + seconds_update),
          "fraction", epochs=cfg.ppo.epochs, env_s=round(seconds_env, 3),
          rollout_s=round(seconds_rollout, 3), update_s=round(seconds_update, 3), **shape)
+
+
+def time_loop(args, cfg) -> None:
+    """`train.loop_agent_steps_per_s`: agent-steps of a chunk over the median time between
+    the ends of consecutive chunks (each end is where the loop logs its chunk line)."""
+    updates = (args.loop + 1) * cfg.train.updates_per_chunk
+    cfg = cfgmod.from_dict({"train": {"updates": updates, "eval_worlds": 1}}, cfg)
+    ends = []
+    with tempfile.TemporaryDirectory() as tmp:
+        trainmod.train(cfg, Path(tmp) / "run",
+                       log=lambda line: ends.append(time.perf_counter())
+                       if line.startswith("chunk ") else None)
+    chunk_s = statistics.median(b - a for a, b in zip(ends, ends[1:]))
+    samples = cfg.train.updates_per_chunk * args.envs * args.steps * cfg.robots.count
+    emit("train.loop_agent_steps_per_s", samples / chunk_s, "agent-steps/s",
+         config=args.config, envs=args.envs, steps=args.steps, robots=cfg.robots.count,
+         updates_per_chunk=cfg.train.updates_per_chunk, chunks=args.loop,
+         per_chunk_s=[round(b - a, 2) for a, b in zip(ends, ends[1:])])
 
 
 if __name__ == "__main__":

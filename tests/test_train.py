@@ -79,6 +79,8 @@ def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
     run_dir, state = full_run
     checkpoints = Checkpoints(run_dir / "checkpoints", cfg.train.keep_checkpoints)
     restored = checkpoints.restore(trainer.abstract_state())
+    # best/ is for evaluation: the network without the environments, which last/ holds
+    assert checkpoints.fields()["runner"] and not checkpoints.fields(best=True)["runner"]
     checkpoints.close()
     assert int(restored.update) == int(state.update)
     assert _leaves_equal(restored.runner, state.runner)

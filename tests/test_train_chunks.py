@@ -49,16 +49,19 @@ def _same_run(a_dir, a, b_dir, b):
     assert _untimed(a_dir) == _untimed(b_dir)
 
 
-@pytest.mark.parametrize("updates, chunk_sizes", [
-    (3, (3,)),  # one chunk of all three updates against the fixture's one-update chunks
-    pytest.param(10, (1, 2, 5), marks=pytest.mark.slow),
+@pytest.mark.parametrize("updates, chunk_sizes, overrides", [
+    (3, (3,), []),  # one chunk of all three updates against the fixture's one-update chunks
+    # radio ranges changing with every update, inside the chunks and across them
+    pytest.param(10, (1, 2, 5), ["train.radio_ranges=[0.1, .inf, 0.3]"],
+                 marks=pytest.mark.slow),
 ])
 def test_a_run_trains_the_same_whatever_its_chunk_size(cfg, full_run, tmp_path, updates,
-                                                       chunk_sizes):
+                                                       chunk_sizes, overrides):
     runs = [full_run] if updates == cfg.train.updates else []
     for size in chunk_sizes:
         sized = cfgmod.load("configs/smoke.yaml", [f"train.updates={updates}",
-                                                   f"train.updates_per_chunk={size}"])
+                                                   f"train.updates_per_chunk={size}",
+                                                   *overrides])
         run_dir = tmp_path / f"chunks_of_{size}"
         runs.append((run_dir, trainmod.train(sized, run_dir, log=lambda _: None)))
     (first_dir, first), *others = runs

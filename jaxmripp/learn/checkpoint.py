@@ -43,12 +43,14 @@ class Checkpoints:
                     max_to_keep=1, best_fn=lambda m: m["score"], best_mode="max", **sync),
                 **handler)
 
-    def save(self, step: int, state: Any, score: float) -> None:
+    def save(self, step: int, state: Any, score: float, best_state: Any = None) -> None:
+        """`state` to last/ and `best_state` (default: `state`) to best/, which is for
+        evaluation and export and need not hold what only resuming reads."""
         for manager in (self.last, self.best):
             Path(manager.directory).mkdir(parents=True, exist_ok=True)
         if step not in self.best.all_steps():
-            self.best.save(step, args=ocp.args.StandardSave(state),
-                           metrics={"score": float(score)})
+            self.best.save(step, args=ocp.args.StandardSave(
+                state if best_state is None else best_state), metrics={"score": float(score)})
             self.best.wait_until_finished()
         self.last.save(step, args=ocp.args.StandardSave(state))
         self.last.wait_until_finished()
