@@ -212,8 +212,8 @@ def main(argv: list[str] | None = None) -> int:
                         metavar="FILE", help="a benchmark's output (repeatable)")
     parser.add_argument("--commit", help="the commit the run trained with (default: HEAD)")
     args = parser.parse_args(argv)
-    if (args.metadata is None) == (args.run_dir is None or args.out_dir is None) or (
-            args.metadata is not None and args.run_dir is not None):
+    given = [path for path in (args.run_dir, args.out_dir) if path is not None]
+    if len(given) != (0 if args.metadata else 2):
         parser.error("give RUN_DIR OUT_DIR, or --metadata FOLDER alone")
 
     from jaxmripp.export import ExportError
