@@ -59,10 +59,10 @@ def install(point: str, crash, monkeypatch=None) -> None:
     elif point in ("before_checkpoint", "after_checkpoint"):
         save = Checkpoints.save
 
-        def around(self, step, state, score):
+        def around(self, step, *args, **kwargs):
             if step == AT_UPDATE and point == "before_checkpoint":
                 crash()
-            save(self, step, state, score)
+            save(self, step, *args, **kwargs)
             if step == AT_UPDATE and point == "after_checkpoint":
                 crash()
 

@@ -138,18 +138,11 @@ class MetricsLog:
             self.jsonl.write_text("")
         self.tensorboard = None
         if "tensorboard" in sinks:
-            from tensorboardX import SummaryWriter  # noqa: PLC0415 (only where asked for)
-
             events = run_dir / TENSORBOARD_DIR
             if fresh and events.is_dir():
                 for old in events.glob("events.out.tfevents.*"):
                     old.unlink()
-            # Updates after `done` may have been logged before a crash: their events
-            # from earlier files are hidden (TensorBoard's purge of steps >= purge_step).
-            # The suffix keeps files apart (and in order) when two writers start within
-            # one second, which would otherwise share a name.
-            self.tensorboard = SummaryWriter(str(events), purge_step=done + 1,
-                                             filename_suffix=f".{time.time_ns():019d}")
+            self.tensorboard = EventFile(events, done + 1)
         self.wandb = _wandb_run(cfg, run_dir) if "wandb" in sinks else None
 
     def write(self, chunk: list[dict]) -> None:
@@ -160,8 +153,7 @@ class MetricsLog:
         for record in chunk:
             scalars = {k: v for k, v in record.items() if k != "update"}
             if self.tensorboard is not None:
-                for name, value in scalars.items():
-                    self.tensorboard.add_scalar(name, value, global_step=record["update"])
+                self.tensorboard.scalars(record["update"], scalars)
             if self.wandb is not None:
                 self.wandb.log(scalars, step=record["update"])
         if self.tensorboard is not None:
@@ -172,6 +164,40 @@ class MetricsLog:
             self.tensorboard.close()
         if self.wandb is not None:
             self.wandb.finish()
+
+
+class EventFile:
+    """A TensorBoard event file written as records come, with tensorboardX's record writer
+    and protobuf classes. (Its SummaryWriter hands events to a thread through a queue,
+    and `flush` does not wait for the queue: a killed process loses the last events.)"""
+
+    def __init__(self, directory: Path, purge_step: int):
+        from tensorboardX.event_file_writer import EventsWriter  # noqa: PLC0415
+        from tensorboardX.proto.event_pb2 import Event, SessionLog  # noqa: PLC0415
+
+        directory.mkdir(parents=True, exist_ok=True)
+        # The suffix keeps files apart, and in order, when two writers start within one
+        # second (the name has the time in seconds), as a run resumed at once may.
+        self.writer = EventsWriter(str(directory / "events"), f".{time.time_ns():019d}")
+        # Updates from `purge_step` on may have been logged before a crash: TensorBoard
+        # hides earlier files' events at those steps after a session start there.
+        self.writer.write_event(Event(wall_time=time.time(), step=purge_step,
+                                      session_log=SessionLog(status=SessionLog.START)))
+        self.writer.flush()
+
+    def scalars(self, step: int, values: dict[str, float]) -> None:
+        from tensorboardX.proto.event_pb2 import Event  # noqa: PLC0415
+        from tensorboardX.summary import scalar  # noqa: PLC0415
+
+        for tag, value in values.items():
+            self.writer.write_event(Event(wall_time=time.time(), step=step,
+                                          summary=scalar(tag, value)))
+
+    def flush(self) -> None:
+        self.writer.flush()
+
+    def close(self) -> None:
+        self.writer.close()
 
 
 def _wandb_run(cfg: Config, run_dir: Path):
