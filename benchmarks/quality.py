@@ -2,33 +2,44 @@
 non-learning planner.
 
 N = 3 robots, team budget B = 10, W held-out random-layout worlds x T trials, radio range
-rho = inf and 0.1; planners: the policy, nbv_ahead, nbv_team, nbv, coordinated, greedy,
-mcts, rig, random and the oracle (an upper reference that knows the windows, never a
-"baseline").
+rho = inf and 0.1; planners: the policy, nbv_targets, nbv_ahead, nbv_team, nbv,
+coordinated, greedy, mcts, rig, random, and three upper references that read the truth
+(never "baselines"): the window oracle per unit of cost (oracle), the same looking a
+flight ahead with claims heard only in radio range (oracle_ahead), and nbv_targets with
+each building's true remaining windows (oracle_rate). Every planner runs the same worlds
+and trials, so comparisons are paired by world (`jaxmripp.evaluation.stats`).
 Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's world
 (configs/eval_paper_world.yaml, the same protocol). Figures (JSON lines):
 
     quality.policy_pct               mean % of windows found at rho = inf
     quality.policy_pct_rho01         ... at rho = 0.1
-    quality.best_baseline_pct        the best non-learning planner at rho = inf (no oracle)
+    quality.best_baseline_pct        the best non-learning planner at rho = inf (no reference)
     quality.best_baseline            its name
     quality.policy_vs_best_baseline  policy_pct / best_baseline_pct
-    quality.policy_vs_best_p         Welch's two-sided p-value of that difference
-    quality.oracle_pct               the oracle at rho = inf
+    quality.policy_vs_best_p         p of that difference, paired t-test over the per-world
+                                     means (with the Wilcoxon p, the difference and its CI)
+    quality.oracle_pct               the window oracle at rho = inf
+    quality.ceiling_pct              oracle_ahead at rho = inf
+    quality.rate_ceiling_pct         oracle_rate at rho = inf
     quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
     quality.train_minutes            the policy's training time (its metrics.jsonl)
     quality.pct.<planner>.rho<r>     every planner and range
+    quality.recipe_seeds             with several policies of one recipe: how many
+    quality.recipe_mean_pct          ... the mean over them of their rho = inf figures
+    quality.recipe_std_pct           ... and the standard deviation (ddof 1)
 
-and quality.command and quality.rules (the preset, its overrides, the policy, the
+and quality.command and quality.rules (the preset, its overrides, the policies, the
 worlds, trials and seed), which `python -m jaxmripp.ship` records beside the figures.
 With --planners, the figures that need the planners left out (the best baseline, the
-oracle) are not printed.
+references) are not printed.
 
 Usage (from the repository root):
-    python benchmarks/quality.py [--policy DIR] [--preset default|paper] [--worlds 25]
-                                 [--trials 10] [--planners policy,...] [--out DIR]
-                                 [--set key=value ...]
+    python benchmarks/quality.py [--policy DIR [--policy DIR ...] | --seeds DIR DIR ...]
+                                 [--preset default|paper] [--worlds 25] [--trials 10]
+                                 [--planners policy,...] [--out DIR] [--set key=value ...]
 --policy defaults to pretrained/<preset>; without one there, only the baselines run.
+Several policies (the training seeds of one recipe) run in one sweep as policy,
+policy_2, ...; the policy figures are the first one's.
 --out also writes the evaluation tables and plots (results.md, ...) there.
 """
 
@@ -40,6 +51,8 @@ import os
 import sys
 from pathlib import Path
 
+import numpy as np
+
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -47,15 +60,21 @@ from common import ArgumentParser, emit, emit_p, emit_text, entry_point  # noqa:
 from jaxmripp import config as cfgmod, folders  # noqa: E402
 
 PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
-BASELINES = ("nbv_ahead", "nbv_team", "nbv", "coordinated", "greedy", "mcts", "rig", "random")
-REFERENCES = ("oracle",)
+BASELINES = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv", "coordinated", "greedy", "mcts",
+             "rig", "random")
+REFERENCES = cfgmod.REFERENCES
+CEILINGS = {"oracle": "quality.oracle_pct", "oracle_ahead": "quality.ceiling_pct",
+            "oracle_rate": "quality.rate_ceiling_pct"}
 
 
 @entry_point
 def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=Path, help="default: pretrained/<preset>")
+    parser.add_argument("--policy", type=Path, action="append", default=[],
+                        help="default: pretrained/<preset>; repeat for several seeds")
+    parser.add_argument("--seeds", type=Path, nargs="+", default=[], metavar="DIR",
+                        help="policies of one recipe (same as repeating --policy)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
     parser.add_argument("--worlds", type=int, default=25)
     parser.add_argument("--trials", type=int, default=10)
@@ -63,12 +82,16 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="also write tables and plots here")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
     args = parser.parse_args(argv)
-    policy = args.policy or Path("pretrained") / args.preset
-    if args.policy:  # a folder of another kind or a corrupt export fails here, in one line
-        folders.policy(policy)
-    has_policy = args.policy is not None or folders.is_export(policy) or (
-        folders.is_training_run(policy))
-    everything = (["policy"] if has_policy else []) + list(BASELINES) + list(REFERENCES)
+    given = args.policy + args.seeds
+    for folder in given:  # a folder of another kind or a corrupt export fails here
+        folders.policy(folder)
+    if len(set(given)) < len(given):
+        parser.error("--policy / --seeds: a folder is given twice; allowed: distinct policies")
+    default = Path("pretrained") / args.preset
+    shipped = folders.is_export(default) or folders.is_training_run(default)
+    policy_dirs = given or ([default] if shipped else [])
+    names = ["policy"] + [f"policy_{i + 1}" for i in range(1, len(policy_dirs))]
+    everything = (["policy"] if policy_dirs else []) + list(BASELINES) + list(REFERENCES)
     planners = args.planners.split(",") if args.planners else everything
     unknown = [name for name in planners if name not in everything]
     if unknown:
@@ -88,24 +111,26 @@ def main(argv=None) -> int:
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
-    from jaxmripp.evaluation.stats import welch_ttest  # noqa: PLC0415
+    from jaxmripp.evaluation.stats import paired_by_world  # noqa: PLC0415
 
     policies = {}
     if "policy" in planners:
-        cfg = pipeline.with_policy_inputs(cfg, [policy])
-        policies["policy"] = pipeline.sweep_planner(
-            policy, cfg, log=lambda line: print(line, file=sys.stderr))
+        cfg = pipeline.with_policy_inputs(cfg, policy_dirs)
+        for name, folder in zip(names, policy_dirs):
+            policies[name] = pipeline.sweep_planner(
+                folder, cfg, name=name, log=lambda line: print(line, file=sys.stderr))
     result = sweep.run_sweep(cfg, policies, log=lambda line: print(line, file=sys.stderr),
                              time_planning=False, keep_pictures=False)
     command = "python benchmarks/quality.py " + " ".join(argv or sys.argv[1:])
     emit_text("quality.command", command)  # for jaxmripp.ship
     emit_text("quality.rules", {  # what the figures were measured under
         "config": PRESETS[args.preset], "overrides": overrides,
-        "policy": str(policy) if "policy" in planners else None,
+        "policy": [str(d) for d in policy_dirs] if "policy" in planners else None,
         "worlds": cfg.eval.worlds, "trials": cfg.eval.trials, "seed": cfg.eval.seed})
     if args.out:
         outputs.write_outputs(result, args.out, cfg, render=True, gif=False, command=command)
     found = {(r.planner, r.shape.radio_range): r.discovered for r in result.runs}
+    worlds = result.runs[0].worlds
     pct = {key: float(value.mean()) for key, value in found.items()}
     for (name, rho), value in pct.items():
         emit(f"quality.pct.{name}.rho{rho:g}", value, "%")
@@ -114,8 +139,9 @@ def main(argv=None) -> int:
         best = max(BASELINES, key=lambda name: pct[(name, math.inf)])
         emit("quality.best_baseline_pct", pct[(best, math.inf)], "%")
         emit_text("quality.best_baseline", best)
-    if "oracle" in planners:
-        emit("quality.oracle_pct", pct[("oracle", math.inf)], "%")
+    for name, figure in CEILINGS.items():
+        if name in planners:
+            emit(figure, pct[(name, math.inf)], "%")
     episodes = sum(len(r.discovered) for r in result.runs)
     collisions = sum(int(r.safety[key].sum()) for r in result.runs
                      for key in ("obstacle_collisions", "robot_collisions_in_range"))
@@ -127,9 +153,18 @@ def main(argv=None) -> int:
         if best is not None:
             emit("quality.policy_vs_best_baseline",
                  pct[("policy", math.inf)] / pct[(best, math.inf)], "ratio")
-            p_value = welch_ttest(found[("policy", math.inf)], found[(best, math.inf)])[2]
-            emit_p("quality.policy_vs_best_p", p_value)
-        minutes = folders.train_minutes(policy)
+            test = paired_by_world(found[("policy", math.inf)], found[(best, math.inf)], worlds)
+            emit_p("quality.policy_vs_best_p", test["p"])
+            emit("quality.policy_vs_best_diff", test["diff"], "points", ci95=[
+                round(x, 3) for x in test["ci"]],
+                p_wilcoxon=float(f"{test['p_wilcoxon']:.3g}"), dz=round(test["dz"], 3),
+                worlds=worlds)
+        if len(policy_dirs) > 1:
+            seeds = np.array([pct[(name, math.inf)] for name in names])
+            emit("quality.recipe_seeds", len(seeds), "policies")
+            emit("quality.recipe_mean_pct", float(seeds.mean()), "%")
+            emit("quality.recipe_std_pct", float(seeds.std(ddof=1)), "%")
+        minutes = folders.train_minutes(policy_dirs[0])
         if minutes is not None:
             emit("quality.train_minutes", minutes, "min")
     return 0

@@ -11,7 +11,7 @@ Modules: `sections` (the dataclasses and their defaults), `rules` (allowed value
 
 from jaxmripp.config.errors import ConfigError
 from jaxmripp.config.loading import from_dict, load, parse_override, to_dict, to_yaml
-from jaxmripp.config.rules import METRIC_SINKS, PLANNERS, RULES, validate
+from jaxmripp.config.rules import METRIC_SINKS, PLANNERS, REFERENCES, RULES, validate
 from jaxmripp.config.sections import (
     REFERENCE_SIZE,
     CandidateConfig,
@@ -33,6 +33,7 @@ from jaxmripp.config.sections import (
 __all__ = [
     "METRIC_SINKS",
     "PLANNERS",
+    "REFERENCES",
     "REFERENCE_SIZE",
     "RULES",
     "CandidateConfig",

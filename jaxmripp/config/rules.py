@@ -236,6 +236,12 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         if name in cfg.eval.planners and branches > cfg.candidates.count:
             problems.append((f"eval.{key}", branches, f"at most the candidate count 4 x "
                              f"candidates.positions = {cfg.candidates.count}"))
+    believes = cfg.policy.belief_features or any(
+        p in cfg.eval.planners for p in ("nbv_targets", "oracle_rate"))
+    if believes and cfg.world.clearance < 1:
+        problems.append(("world.clearance", cfg.world.clearance,
+                         "at least 1 with the target belief (policy.belief_features, "
+                         "nbv_targets, oracle_rate: buildings must not touch)"))
     if cfg.policy.belief_features and cfg.policy.claims:
         problems.append(("policy.belief_features", True,
                          "false while policy.claims is true (deciding in turn recomputes "

@@ -7,8 +7,8 @@ same world and budget, so planners are compared on identical problems.
   (test layout, fixed team budget); `max_steps` covers the largest budget of a sweep.
 - `compare` / `summary_table`: the quick comparison `pipeline.report` runs after training
   (one key per episode, world and trial randomness together); `tune`, `tune_greedy`,
-  `tune_nbv`, `tune_mcts`, `tune_rig`: the baselines' weights, searched on training-layout
-  worlds.
+  `tune_nbv`, `tune_nbv_ahead`, `tune_nbv_targets`, `tune_mcts`, `tune_rig`: the
+  baselines' weights, searched on training-layout worlds.
 - The sweep primitive (cells of N, G, rho, B compiled once per N, G) is
   `jaxmripp.evaluation.cells`; planners by name are in `jaxmripp.evaluation.planners`;
   statistics in `jaxmripp.evaluation.stats`.
@@ -203,6 +203,23 @@ def tune_nbv_ahead(cfg: Config, discounts, branches: int, flights: int, worlds: 
                                    branches=branches, flights=flights)
     rows = tune(cfg, planner_of, [(d,) for d in discounts], worlds, seed, budget)
     return [(d, m) for (d,), m in rows]
+
+
+def tune_nbv_targets(cfg: Config, strengths, facades, discounts, worlds: int, seed: int,
+                     budget: float) -> list[tuple[float, float, float, float]]:
+    """`tune` over nbv_targets' prior strength x facade weight x discount with
+    eval.nbv_targets_branches and eval.nbv_ahead_flights (static): (strength, facade,
+    discount, mean % found) rows, best first."""
+    grid = [(k, w, d) for k in strengths for w in facades for d in discounts]
+    planner_of = functools.partial(_nbv_targets_of, branches=cfg.eval.nbv_targets_branches,
+                                   flights=cfg.eval.nbv_ahead_flights)
+    rows = tune(cfg, planner_of, grid, worlds, seed, budget)
+    return [(k, w, d, m) for (k, w, d), m in rows]
+
+
+def _nbv_targets_of(weights, params, branches, flights):
+    return baselines.nbv_targets_planner(params, weights[0], weights[1], weights[2], branches,
+                                         flights)
 
 
 def _nbv_ahead_of(weights, params, facade, branches, flights):

@@ -1,5 +1,6 @@
-"""The files an evaluation sweep writes: markdown table, CSV / JSON of every episode,
-a JSON summary with Welch t-tests, and plots (`write_outputs`)."""
+"""The files an evaluation sweep writes: markdown table, CSV / JSON of every episode, a
+JSON summary with the comparisons paired by world (`stats.paired_by_world`), and plots
+(`write_outputs`)."""
 
 from __future__ import annotations
 

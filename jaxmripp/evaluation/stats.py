@@ -1,4 +1,6 @@
-"""Statistics of per-episode results: Welch's t-test and Student-t confidence intervals."""
+"""Statistics of per-episode results: Student-t confidence intervals, Welch's t-test, and
+comparisons of two planners paired by world (`paired_by_world`), the test the evaluation
+tables report: every planner runs the same worlds and trials."""
 
 from __future__ import annotations
 
@@ -38,3 +40,40 @@ def mean_ci(x, level: float = 0.95) -> tuple[float, float, float]:
     std = float(x.std(ddof=1))
     half = float(stats.t.ppf(0.5 + level / 2, len(x) - 1) * std / math.sqrt(len(x)))
     return float(x.mean()), std, half
+
+
+def world_means(x, worlds: int) -> np.ndarray:
+    """(W,) per-world means of per-episode results (E,) stored world-major (episode e on
+    world e // trials, as sweeps store them)."""
+    x = np.asarray(x, np.float64)
+    if worlds < 1 or len(x) % worlds:
+        raise ValueError(f"{len(x)} episodes do not split into {worlds} worlds")
+    return x.reshape(worlds, -1).mean(axis=1)
+
+
+def paired_by_world(a, b, worlds: int, level: float = 0.95) -> dict:
+    """Planner A against planner B on the same worlds and trials (per-episode results (E,)
+    each, world-major): the W per-world mean differences A - B, their mean with a
+    Student-t confidence interval, the paired t-test over them (scipy.stats.ttest_rel),
+    the Wilcoxon signed-rank test (zero differences dropped; p = 1 when all are zero) and
+    Cohen's d_z (mean difference / their standard deviation). The worlds, not the
+    episodes, are the independent samples: trials on one world share its layout."""
+    from scipy import stats  # noqa: PLC0415
+
+    if len(a) != len(b):
+        raise ValueError(f"paired comparison of {len(a)} and {len(b)} episodes; allowed: "
+                         "the same worlds and trials for both")
+    diff = world_means(a, worlds) - world_means(b, worlds)
+    mean, std, half = mean_ci(diff, level)
+    if worlds < 2 or std == 0:
+        p = 1.0 if mean == 0 else (0.0 if worlds > 1 else float("nan"))
+        t = 0.0 if mean == 0 else math.copysign(math.inf, mean)
+    else:
+        t, p = (float(v) for v in stats.ttest_rel(world_means(a, worlds),
+                                                  world_means(b, worlds)))
+    nonzero = diff[diff != 0]
+    wilcoxon = float(stats.wilcoxon(nonzero).pvalue) if len(nonzero) else 1.0
+    return {"worlds": worlds, "diff": mean, "ci": [mean - half, mean + half], "t": t,
+            "df": worlds - 1, "p": p, "p_wilcoxon": wilcoxon,
+            "dz": mean / std if std > 0 else (0.0 if mean == 0 else math.copysign(
+                math.inf, mean))}

@@ -7,7 +7,8 @@ only in dynamic parameters (radio range, budget), so per planner they are traced
 compiled once and run as one vmapped call over their stacked `DynamicParams` (in
 memory-sized chunks of the compiled shape; `cells.run_shapes`). `run_sweep` returns a
 `SweepResult`; `outputs.write_outputs` puts a paper-style markdown table, CSV / JSON of
-every run, Welch t-tests and plots in a folder. `eval.py` is the command-line front end.
+every run, comparisons paired by world and plots in a folder. `eval.py` is the
+command-line front end.
 
 EvalConfig fields read beyond the base ones (defaults in planners.EVAL_DEFAULTS while
 jaxmripp.config does not define them):
@@ -16,8 +17,8 @@ jaxmripp.config does not define them):
 - zip_with_size: names among radio_ranges, budgets, team_sizes whose i-th entry goes with
   the i-th world size instead of being crossed with all of them (the scale preset pairs
   rho = 0.2 / 0.15 / 0.12 with G = 75 / 100 / 125);
-- pairs: "a:b" planner pairs to compare with Welch's t-test in every shape (default: the
-  first planner against each other one);
+- pairs: "a:b" planner pairs to compare in every shape, paired by world
+  (`stats.paired_by_world`; default: the first planner against each other one);
 - batch: episodes per vmapped call (0: sized to memory, cells.auto_batch);
 - time_planning: also time planner.act alone; render: pictures and GIFs;
 - coordinated_kappa / _lambda / _mu, nbv_facade, nbv_team_facade, mcts_simulations /
@@ -32,13 +33,13 @@ import itertools
 import math
 from typing import Callable, Sequence
 
-from jaxmripp.config import Config
+from jaxmripp.config import REFERENCES, Config
 from jaxmripp.evaluation import cells, evaluate
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.params import StaticAhead, StaticBelief
 from jaxmripp.evaluation.cells import SAFETY_COUNTS, Shape, ShapeRun, safety_columns
 from jaxmripp.evaluation.planners import baseline_planner, deployed, eval_setting
-from jaxmripp.evaluation.stats import mean_ci, welch_ttest
+from jaxmripp.evaluation.stats import mean_ci, paired_by_world
 from jaxmripp.parallel import progress as progressmod
 
 def shapes_of(cfg: Config) -> list[Shape]:
@@ -123,11 +124,11 @@ class SweepResult:
             runs = self.of(shape)
             for a, b in self.pairs:
                 if a in runs and b in runs:
-                    t, df, p = welch_ttest(runs[a].discovered, runs[b].discovered)
+                    test = paired_by_world(runs[a].discovered, runs[b].discovered,
+                                           runs[a].worlds)
                     rows.append({"shape": shape.label(), "a": a, "b": b,
                                  "mean_a": float(runs[a].discovered.mean()),
-                                 "mean_b": float(runs[b].discovered.mean()),
-                                 "t": t, "df": df, "p": p})
+                                 "mean_b": float(runs[b].discovered.mean()), **test})
         return rows
 
     def table(self, timing: bool = True) -> str:
@@ -145,7 +146,8 @@ class SweepResult:
             out += [head + " " + safety_columns(), rule + "---|" * len(SAFETY_COUNTS)]
             for name, r in runs.items():
                 mean, std, half = mean_ci(r.discovered)
-                row = f"| {name} | {mean:.2f} +- {std:.2f} | [{mean - half:.2f}, {mean + half:.2f}] |"
+                label = f"{name} (reference)" if name in REFERENCES else name
+                row = f"| {label} | {mean:.2f} +- {std:.2f} | [{mean - half:.2f}, {mean + half:.2f}] |"
                 if timing:
                     row += f" {_ms(r.plan_ms_per_robot_step)} | {_ms(r.ms_per_robot_step)} |"
                 row += " " + safety_columns(r.safety)
@@ -153,13 +155,15 @@ class SweepResult:
             out.append("")
         tests = self.ttests()
         if tests:
-            out += ["### Welch t-tests (% targets)", "",
-                    "| shape | A | B | mean A | mean B | A - B | t | df | p |",
-                    "|---|---|---|---|---|---|---|---|---|"]
+            out += ["### Paired by world (% targets; t-test and Wilcoxon over the per-world "
+                    "means)", "",
+                    "| shape | A | B | mean A | mean B | A - B [95% CI] | d_z | t | df | p | "
+                    "p (Wilcoxon) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
             for t in tests:
                 out.append(f"| {t['shape']} | {t['a']} | {t['b']} | {t['mean_a']:.2f} | "
-                           f"{t['mean_b']:.2f} | {t['mean_a'] - t['mean_b']:+.2f} | "
-                           f"{t['t']:.3f} | {t['df']:.1f} | {t['p']:.3g} |")
+                           f"{t['mean_b']:.2f} | {t['diff']:+.2f} [{t['ci'][0]:+.2f}, "
+                           f"{t['ci'][1]:+.2f}] | {t['dz']:.2f} | {t['t']:.3f} | {t['df']} | "
+                           f"{t['p']:.3g} | {t['p_wilcoxon']:.3g} |")
             out.append("")
         return "\n".join(out)
 

@@ -1,0 +1,155 @@
+"""nbv_targets and the upper references (oracle per cost, oracle_ahead, oracle_rate) in
+their limits, and comparisons paired by world (jaxmripp.evaluation.stats) against scipy.
+
+Episodes run on the smoke world (G = 20, 6 positions, 2 robots); they compile whole
+episodes, so they are in the slow suite."""
+
+from __future__ import annotations
+
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats as scipy_stats
+
+from jaxmripp import config
+from jaxmripp.evaluation import baselines, evaluate, planners
+from jaxmripp.evaluation import stats
+from jaxmripp.sim import env as envmod, episode, oracle, sensing, view
+
+ROOT = Path(__file__).resolve().parents[1]
+CFG = config.load(ROOT / "configs" / "smoke.yaml", ["safety.flight=truncate"])
+PARAMS = evaluate.eval_params(CFG, 4.0)
+BRANCHES = 4
+
+
+def _episodes(planner, radio_range=math.inf, count=3):
+    dyn = evaluate.eval_dynamic(CFG, 4.0, radio_range=radio_range)
+    run = jax.jit(jax.vmap(lambda k: episode.run(k, PARAMS, dyn, planner).trajectory))
+    return jax.tree.map(np.asarray, run(jax.random.split(jax.random.PRNGKey(11), count)))
+
+
+@pytest.mark.slow
+def test_nbv_targets_with_an_unshakable_prior_chooses_as_nbv_ahead():
+    # A prior no window moves puts every building at rho = 1 (q = RATE_SCALE): the
+    # rate-weighted facade is the facade, so the two search the same values.
+    ahead = baselines.nbv_ahead_planner(PARAMS, 2.0, 3.0, BRANCHES)
+    targets = baselines.nbv_targets_planner(PARAMS, 1e9, 2.0, 3.0, BRANCHES)
+    a, b = _episodes(ahead), _episodes(targets)
+    assert a.active.sum() > 4
+    np.testing.assert_array_equal(a.position, b.position)
+    np.testing.assert_array_equal(a.heading, b.heading)
+
+
+@pytest.mark.slow
+def test_every_new_planner_runs_by_name_with_feasible_choices():
+    for name in ("nbv_targets", "oracle", "oracle_ahead", "oracle_rate"):
+        overrides = {"eval": {"nbv_targets_branches": BRANCHES, "oracle_ahead_branches": 3}}
+        cfg = config.from_dict(overrides, CFG)
+        trajectory = _episodes(planners.baseline_planner(name, PARAMS, cfg.eval), count=2)
+        assert trajectory.discovered_fraction[:, -1].min() > 0, name
+        assert trajectory.active.any(), name
+
+
+@pytest.fixture(scope="module")
+def stepped():
+    """A state after two steps of random choices (its candidates, windows, maps), at rho =
+    inf and at rho = 0 (nobody hears anybody)."""
+    out = {}
+    for rho in (math.inf, 0.0):
+        dyn = evaluate.eval_dynamic(CFG, 4.0, radio_range=rho)
+        obs, state = jax.jit(envmod.reset, static_argnums=1)(jax.random.PRNGKey(4), PARAMS, dyn)
+        step = jax.jit(envmod.step, static_argnums=3)
+        for t in range(2):
+            act = baselines.random_planner().act(jax.random.PRNGKey(t), None, obs)[1]
+            obs, state, *_ = step(jax.random.PRNGKey(10 + t), state, act, PARAMS, dyn)
+        out[rho] = obs, state, dyn
+    return out
+
+
+def _fresh_per_cost(state, robot, covered):
+    """(L,) the windows in view of each of the robot's candidates that `covered` does not
+    hold, per unit of cost (brute force over the candidates)."""
+    c = state.candidates
+    fresh = []
+    for p, h in zip(np.asarray(c.position[robot]), np.asarray(c.heading[robot])):
+        seen = np.asarray(sensing.cast(state.world, jnp.asarray(p), jnp.asarray(h),
+                                       PARAMS.sensor, PARAMS.size).seen)
+        fresh.append((seen & ~covered).sum())
+    return np.asarray(view.per_cost(jnp.asarray(fresh, jnp.float32), c.cost[robot],
+                                    PARAMS.candidates.shell[1]))
+
+
+@pytest.mark.slow
+def test_oracle_ahead_without_discount_is_the_oracle_per_cost_in_range(stepped):
+    obs, state, dyn = stepped[math.inf]
+    tie = 0.01 * jax.random.uniform(jax.random.PRNGKey(2), obs.mask.shape)
+    ahead = oracle.choose_ahead(jax.random.PRNGKey(3), obs.mask, state, dyn, PARAMS, tie,
+                                0.0, BRANCHES)
+    greedy = oracle.choose_in_turn(obs.mask, state, PARAMS, tie, per_cost=True)
+    np.testing.assert_array_equal(np.asarray(ahead), np.asarray(greedy))
+    # Robot 0 takes the most windows per cost (brute force); so does the per-cost oracle.
+    score = _fresh_per_cost(state, 0, np.asarray(state.discovered)) + np.asarray(tie[0])
+    assert int(greedy[0]) == int(np.argmax(np.where(obs.mask[0], score, -np.inf)))
+
+
+@pytest.mark.slow
+def test_oracle_ahead_robots_out_of_range_ignore_each_others_claims(stepped):
+    obs, state, dyn = stepped[0.0]
+    assert not np.asarray(state.heard & ~np.eye(2, dtype=bool)).any()
+    tie = 0.01 * jax.random.uniform(jax.random.PRNGKey(2), obs.mask.shape)
+    ahead = oracle.choose_ahead(jax.random.PRNGKey(3), obs.mask, state, dyn, PARAMS, tie,
+                                0.0, BRANCHES)
+    for robot in range(2):
+        score = _fresh_per_cost(state, robot, np.asarray(state.discovered))
+        score = np.where(obs.mask[robot], score + np.asarray(tie[robot]), -np.inf)
+        assert int(ahead[robot]) == int(np.argmax(score))
+
+
+# ---------------------------------------------------------------------------------------
+# Statistics
+
+
+def test_paired_by_world_matches_scipy_on_the_per_world_means():
+    rng = np.random.default_rng(0)
+    worlds, trials = 12, 5
+    world_effect = np.repeat(rng.normal(50, 8, worlds), trials)
+    a = world_effect + rng.normal(1.5, 1.0, worlds * trials)
+    b = world_effect + rng.normal(0.0, 1.0, worlds * trials)
+    test = stats.paired_by_world(a, b, worlds)
+    mean_a, mean_b = a.reshape(worlds, trials).mean(1), b.reshape(worlds, trials).mean(1)
+    t, p = scipy_stats.ttest_rel(mean_a, mean_b)
+    assert test["t"] == pytest.approx(t) and test["p"] == pytest.approx(p)
+    assert test["p_wilcoxon"] == pytest.approx(scipy_stats.wilcoxon(mean_a - mean_b).pvalue)
+    diff = mean_a - mean_b
+    assert test["diff"] == pytest.approx(diff.mean())
+    assert test["dz"] == pytest.approx(diff.mean() / diff.std(ddof=1))
+    half = scipy_stats.t.ppf(0.975, worlds - 1) * diff.std(ddof=1) / math.sqrt(worlds)
+    assert test["ci"] == pytest.approx([diff.mean() - half, diff.mean() + half])
+    # The worlds' spread hides the difference from a test that ignores the pairing.
+    assert test["p"] < 0.01 < stats.welch_ttest(a, b)[2]
+
+
+def test_paired_by_world_degenerate_and_mismatched_inputs():
+    same = stats.paired_by_world([3.0, 4.0, 5.0, 6.0], [3.0, 4.0, 5.0, 6.0], 2)
+    assert same["p"] == 1.0 and same["p_wilcoxon"] == 1.0 and same["diff"] == 0.0
+    shifted = stats.paired_by_world([4.0, 5.0, 6.0, 7.0], [3.0, 4.0, 5.0, 6.0], 2)
+    assert shifted["p"] == 0.0 and shifted["diff"] == 1.0
+    with pytest.raises(ValueError, match="same worlds"):
+        stats.paired_by_world([1.0, 2.0], [1.0], 1)
+    with pytest.raises(ValueError, match="worlds"):
+        stats.world_means([1.0, 2.0, 3.0], 2)
+
+
+def test_quality_refuses_a_policy_given_twice(tmp_path):
+    (tmp_path / "config.yaml").write_text("{}\n")
+    done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"),
+                           "--policy", str(tmp_path), "--seeds", str(tmp_path)],
+                          cwd=ROOT, capture_output=True, text=True, timeout=120)
+    assert done.returncode == 2, done.stderr[-2000:]
+    assert done.stderr.strip().startswith("error: --policy / --seeds") and done.stdout == ""
