@@ -1,0 +1,62 @@
+"""benchmarks/generalize.py: its 12 cells are the settings the issue of record names, on
+seeds no other protocol uses, and bad arguments are one error line."""
+
+import importlib.util
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def _module():
+    sys.path.insert(0, str(ROOT / "benchmarks"))
+    spec = importlib.util.spec_from_file_location("generalize", ROOT / "benchmarks" / "generalize.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_cells_shift_the_table_i_setting_as_named():
+    gen = _module()
+    cfgs = {name: gen.cell_config(name, ["policy", "nbv_team"], 10, 5, []) for name in gen.CELLS}
+    assert len(cfgs) == 12
+    d = {name: (c.world.buildings, (c.world.footprint_min, c.world.footprint),
+                c.eval.budgets, c.eval.team_sizes, c.eval.radio_ranges, c.eval.layout)
+         for name, c in cfgs.items()}
+    default = (25, (0, 3), (10.0,), (3,), (math.inf,), "random")
+    assert d["grid"] == default[:5] + ("grid",)
+    assert d["n6"] == (25, (0, 3), (20.0,), (6,), (math.inf,), "random")
+    assert d["dense_short"] == (40, (2, 5), (7.0,), (6,), (0.1,), "random")
+    assert d["sparse_pair"] == (15, (2, 5), (14.0,), (2,), (math.inf,), "grid")
+    assert d["dense_long"] == (40, (2, 5), (14.0,), (3,), (0.3,), "random")
+    # every cell differs from the default setting, and no two cells are the same setting
+    assert default not in d.values() and len(set(d.values())) == 12
+    seeds = {c.eval.seed for c in cfgs.values()}
+    assert len(seeds) == 12 and not seeds & {1000, 2000}  # quality.py and scale.py use these
+    assert {(c.eval.worlds, c.eval.trials) for c in cfgs.values()} == {(10, 5)}
+
+
+@pytest.mark.parametrize("arguments", [["--cells", "nope"], ["--worlds", "1"],
+                                       ["--policy", "configs"], ["world.buildings=0"]])
+def test_bad_arguments_are_one_error_line(arguments):
+    done = subprocess.run([sys.executable, "benchmarks/generalize.py", *arguments], cwd=ROOT,
+                          capture_output=True, text=True)
+    assert done.returncode == 2, done.stderr
+    assert done.stderr.count("\n") == 1 and done.stderr.startswith("error: ")
+
+
+@pytest.mark.slow
+def test_one_cell_prints_its_figures():
+    done = subprocess.run([sys.executable, "benchmarks/generalize.py", "--cells", "budget7",
+                           "--worlds", "2", "--trials", "1"], cwd=ROOT, capture_output=True,
+                          text=True, check=True)
+    figures = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}
+    cell = figures["generalize.cell.budget7"]
+    assert cell["value"] == pytest.approx(cell["policy_pct"] / cell["best_pct"], rel=1e-3)
+    assert cell["best"] in ("nbv_targets", "nbv_ahead", "nbv_team", "nbv")
+    assert figures["generalize.cells_won"]["value"] == int(cell["value"] > 1)
