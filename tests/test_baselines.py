@@ -102,8 +102,10 @@ def test_oracle_robots_do_not_claim_the_same_windows():
     spot = int(np.argmax(useful))
     seen = seen_all[spot]
     pos = jnp.broadcast_to(spots[spot], (4, 3))
+    # One cost for all four (the oracle scores windows per unit of cost).
     cands = types.SimpleNamespace(position=jnp.broadcast_to(pos, (2, 4, 3)),
-                                  heading=jnp.broadcast_to(headings, (2, 4)))
+                                  heading=jnp.broadcast_to(headings, (2, 4)),
+                                  cost=jnp.full((2, 4), 0.2, jnp.float32))
     state = types.SimpleNamespace(world=truth, candidates=cands,
                                   discovered=jnp.zeros(truth.target_valid.shape, bool))
     obs = _observation(jnp.zeros((2, 4)), jnp.ones((2, 4), bool))

@@ -11,6 +11,7 @@ is written once:
 - `feeding`: which poses enter a robot's GPs, in which order, and how many per round;
 - `sharing`: what robots in range learn of each other's maps;
 - `view`: the view-gain features' model of the sensor and the facades;
+- `belief`: where the windows not found yet are likely to be (the target belief);
 - `sectors`: a division of the world among the team that needs no radio;
 - `protocol`: the radio message formats and their version.
 """
