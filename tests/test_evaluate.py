@@ -116,7 +116,7 @@ def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
     from jaxmripp.pipeline import eval_dir
 
     run = tmp_path / "runs" / "mine"
-    (run / "checkpoints").mkdir(parents=True)
+    (run / "checkpoints" / "last" / "10").mkdir(parents=True)  # a saved step: a run
     assert eval_dir("configs/eval_paper.yaml", [run, ROOT / "pretrained/paper"]) == run / "eval"
     assert eval_dir("configs/eval_paper.yaml", [ROOT / "pretrained/scale"]) == \
         Path("runs/scale/eval")
