@@ -146,10 +146,10 @@ def test_paired_by_world_degenerate_and_mismatched_inputs():
         stats.world_means([1.0, 2.0, 3.0], 2)
 
 
-def test_quality_refuses_a_policy_given_twice(tmp_path):
-    (tmp_path / "config.yaml").write_text("{}\n")
+def test_quality_refuses_a_policy_given_twice():
+    shipped = str(ROOT / "pretrained" / "default")
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"),
-                           "--policy", str(tmp_path), "--seeds", str(tmp_path)],
+                           "--policy", shipped, "--seeds", shipped],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr[-2000:]
     assert done.stderr.strip().startswith("error: --policy / --seeds") and done.stdout == ""
