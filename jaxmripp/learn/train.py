@@ -34,7 +34,8 @@ from jaxmripp import config as cfgmod
 from jaxmripp.config import Config
 from jaxmripp.learn import metrics as metricsmod, ppo, rundir
 from jaxmripp.learn.checkpoint import Checkpoints
-from jaxmripp.learn.policy import VIEW_PRIOR_PARAM, initial_memory
+from jaxmripp.learn.params import first_difference, with_prior_weight
+from jaxmripp.learn.policy import initial_memory
 from jaxmripp.parallel import progress
 from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
 from jaxmripp.sim.observation import Observation
@@ -197,13 +198,13 @@ class Trainer:
         A source without the view prior's weight (trained with `policy.view_prior` = 0)
         starts this config's prior at its configured weight."""
         fresh = self.init()
-        params = _with_prior_weight(params, fresh.params)
+        params = with_prior_weight(params, fresh.params)
         want = jax.tree.map(lambda x: tuple(x.shape), fresh.params)
         got = jax.tree.map(lambda x: tuple(x.shape), params)
         if jax.tree.structure(want) != jax.tree.structure(got) or want != got:
             raise cfgmod.ConfigError(
                 f"train.init_from: got {str(source)!r}, whose network differs from this "
-                f"config's ({_first_difference(want, got)}); allowed: a run or export with "
+                f"config's ({first_difference(want, got)}); allowed: a run or export with "
                 "the same policy width, heads, layers, ff_mult and critic")
         params = jax.tree.map(lambda x, like: jnp.asarray(x, like.dtype), params, fresh.params)
         return fresh.replace(params=params, opt_state=self.optimizer.init(params))
@@ -221,24 +222,6 @@ class Trainer:
         log(f"note: the checkpoint at update {int(saved['update'])} holds no environments; "
             "they start afresh there")
         return TrainState(**saved, runner=None)
-
-
-def _with_prior_weight(params, fresh):
-    """`params` with fresh's view-prior weight added where fresh has one and it lacks it."""
-    inner, fresh_inner = params["params"], fresh["params"]
-    if VIEW_PRIOR_PARAM in fresh_inner and VIEW_PRIOR_PARAM not in inner:
-        return {"params": {**inner, VIEW_PRIOR_PARAM: fresh_inner[VIEW_PRIOR_PARAM]}}
-    return params
-
-
-def _first_difference(want, got) -> str:
-    flat_want = dict(jax.tree_util.tree_flatten_with_path(want)[0])
-    flat_got = dict(jax.tree_util.tree_flatten_with_path(got)[0])
-    for path in sorted(set(flat_want) | set(flat_got), key=str):
-        if flat_want.get(path) != flat_got.get(path):
-            return (f"{jax.tree_util.keystr(path)}: {flat_want.get(path, 'absent')} here, "
-                    f"{flat_got.get(path, 'absent')} there")
-    return "tree structure"
 
 
 def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: DataParallel,
