@@ -20,10 +20,9 @@ from jaxmripp.sim import belief, env, maps, sensing, view
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import belief as spec
-from jaxmripp.spec import view as view_spec
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.spec.layout import BELIEF_FEATURES, FEATURES, features
-from gain_reference import brute_tops
+from gain_reference import brute_tops, samples_total, visible_samples
 
 WORLD = WorldConfig(size=30, layout="random", buildings=36, targets=(250, 250))
 SENSOR = SensorConfig(range=0.3)
@@ -212,24 +211,10 @@ def test_true_rates_spread_the_windows_left_over_the_unseen_surface(scenes):
 
 def reference_windows(grid, top, q, position, heading, sensor):
     """view_windows of one pose, sample by sample (jaxmripp.spec.belief)."""
-    size = grid.shape[0]
-    offsets, weights = view_spec.gain_table(sensor.fov_deg, sensor.range, size)
-    c = np.clip(np.floor(np.float32(position) * np.float32(size)), 0, size - 1).astype(int)
-    total = 0
-    for ray in offsets[heading]:
-        for (dx, dy, dz), w in zip(ray, weights):
-            x, y, z = c[0] + dx, c[1] + dy, c[2] + dz
-            if not (0 <= x < size and 0 <= y < size and 0 <= z < size):
-                break
-            if grid[x, y, z] == OCCUPIED and sensor.gain_occlusion:
-                break
-            columns = ((x, y), (x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1))
-            if sensor.gain_facade == "column":
-                columns = columns[:1]
-            near = max(top[i, j] for i, j in columns if 0 <= i < size and 0 <= j < size)
-            if grid[x, y, z] == UNKNOWN and near > 0 and z <= near:
-                total += int(w) * int(q[x, y])
-    return total / (len(offsets[heading]) * weights.sum() * spec.RATE_SCALE)
+    total = sum(int(w) * int(q[x, y])
+                for x, y, z, w, near in visible_samples(grid, top, position, heading, sensor)
+                if grid[x, y, z] == UNKNOWN and near > 0 and z <= near)
+    return total / (samples_total(grid, heading, sensor) * spec.RATE_SCALE)
 
 
 @pytest.mark.parametrize("seed,sensor", [(0, SENSOR), (1, dataclasses.replace(

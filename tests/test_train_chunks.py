@@ -17,19 +17,7 @@ from jaxmripp.evaluation import evaluate
 from jaxmripp.evaluation.planners import policy_planner
 from jaxmripp.learn import metrics as metricsmod, rundir, train as trainmod
 from jaxmripp.sim import episode
-
-TIMING = ("seconds", "agent_steps_per_s")  # the only record fields that differ between runs
-
-
-@pytest.fixture(scope="module")
-def cfg():
-    return cfgmod.load("configs/smoke.yaml")
-
-
-@pytest.fixture(scope="module")
-def full_run(cfg, tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("runs") / "full"
-    return run_dir, trainmod.train(cfg, run_dir, log=lambda _: None)
+from smoke_run import cfg, full_run, untimed  # noqa: F401 (fixtures)
 
 
 def _leaves_equal(a, b):
@@ -37,16 +25,12 @@ def _leaves_equal(a, b):
                                                     strict=True))
 
 
-def _untimed(run_dir):
-    return [{k: v for k, v in r.items() if k not in TIMING} for r in trainmod.read_metrics(run_dir)]
-
-
 def _same_run(a_dir, a, b_dir, b):
     """Two runs trained the same: state (runner included) to the bit, records alike."""
     assert int(a.update) == int(b.update)
     for field in ("params", "opt_state", "runner"):
         assert _leaves_equal(getattr(a, field), getattr(b, field)), field
-    assert _untimed(a_dir) == _untimed(b_dir)
+    assert untimed(a_dir) == untimed(b_dir)
 
 
 @pytest.mark.parametrize("updates, chunk_sizes, overrides", [

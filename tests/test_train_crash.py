@@ -14,26 +14,9 @@ import pytest
 
 import crash_points
 from event_files import scalars
-from jaxmripp import config as cfgmod
 from jaxmripp.learn import metrics as metricsmod, train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints
-
-TIMING = ("seconds", "agent_steps_per_s")
-
-
-@pytest.fixture(scope="module")
-def cfg():
-    return cfgmod.load("configs/smoke.yaml")
-
-
-@pytest.fixture(scope="module")
-def full_run(cfg, tmp_path_factory):
-    run_dir = tmp_path_factory.mktemp("runs") / "full"
-    return run_dir, trainmod.train(cfg, run_dir, log=lambda _: None)
-
-
-def _untimed(run_dir):
-    return [{k: v for k, v in r.items() if k not in TIMING} for r in trainmod.read_metrics(run_dir)]
+from smoke_run import cfg, full_run, untimed  # noqa: F401 (fixtures)
 
 
 def _assert_as_uninterrupted(cfg, run_dir: Path, full_run, state=None):
@@ -43,7 +26,7 @@ def _assert_as_uninterrupted(cfg, run_dir: Path, full_run, state=None):
         assert all(np.array_equal(a, b) for a, b in zip(
             jax.tree.leaves(getattr(state, field)), jax.tree.leaves(getattr(full, field)),
             strict=True)), field
-    assert _untimed(run_dir) == _untimed(full_dir)  # each update once, the same figures
+    assert untimed(run_dir) == untimed(full_dir)  # each update once, the same figures
     assert scalars(run_dir / metricsmod.TENSORBOARD_DIR).keys() == \
         scalars(full_dir / metricsmod.TENSORBOARD_DIR).keys()
     assert all(len(values) == 1 for values in
