@@ -61,6 +61,7 @@ def test_smoke_run_trains_three_chunks_with_finite_metrics(cfg, full_run):
     assert cfgmod.load(run_dir / "config.yaml") == cfg
 
 
+@pytest.mark.slow  # tests/test_train_crash.py resumes from every crash point in make test
 def test_interrupted_run_resumes_to_identical_parameters(cfg, full_run, tmp_path):
     _, uninterrupted = full_run
     run_dir = tmp_path / "interrupted"
