@@ -19,6 +19,7 @@ from jaxmripp.learn import policy as policymod
 from jaxmripp.config import Config
 from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.runtime import weights as fmt
+from jaxmripp.sim import privileged
 from jaxmripp.spec.layout import N_GLOBAL_EXTRA, ROBOT_STATE
 
 
@@ -29,7 +30,10 @@ class ExportError(ValueError):
 def header(cfg: Config, source: dict | None = None) -> dict[str, Any]:
     """The policy.json header of `cfg` (without the weights block, which `export` adds)."""
     central_critic = cfg.ppo.algo == "mappo"
-    return fmt.header(cfg, policymod.runtime_config(cfg.policy, central_critic), source)
+    policy = policymod.runtime_config(cfg.policy, central_critic)
+    if cfg.ppo.privileged_critic:  # the critic's training-only inputs (sim.privileged)
+        policy["critic_extra_inputs"] = privileged.size(cfg.robots.count)
+    return fmt.header(cfg, policy, source)
 
 
 def runtime_spec(cfg: Config) -> fmt.RuntimeSpec:
@@ -53,7 +57,8 @@ def check_layout(head: dict[str, Any], weights: dict[str, Any]) -> None:
     n_features, n_state = len(layout["features"]), len(layout["robot_state"])
     inputs = {"embed": n_features, "state_embed": n_state}
     if head.get("policy", {}).get("central_critic"):
-        inputs["global_embed"] = head["config"]["robots"]["count"] * n_state + N_GLOBAL_EXTRA
+        inputs["global_embed"] = (head["config"]["robots"]["count"] * n_state + N_GLOBAL_EXTRA
+                                  + head["policy"].get("critic_extra_inputs", 0))
     for name, width in inputs.items():
         kernel = weights.get(f"{name}/kernel")
         if kernel is None:

@@ -221,6 +221,9 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.policy.view_prior > 0 and not cfg.policy.view_features:
         problems.append(("policy.view_prior", cfg.policy.view_prior,
                          "0 while policy.view_features is false (the prior reads them)"))
+    if cfg.ppo.privileged_critic and cfg.ppo.algo != "mappo":
+        problems.append(("ppo.privileged_critic", True,
+                         "false while ppo.algo is ippo (only the central critic reads it)"))
     if cfg.ppo.teacher_coef > 0 and not cfg.policy.view_features:
         problems.append(("ppo.teacher_coef", cfg.ppo.teacher_coef,
                          "0 while policy.view_features is false (the teacher reads them)"))

@@ -169,6 +169,9 @@ class PolicyConfig:
 @dataclasses.dataclass(frozen=True)
 class PPOConfig:
     algo: str = "ippo"  # ippo | mappo
+    # mappo only: the critic also reads where the undiscovered windows are, from the true
+    # world (jaxmripp.sim.privileged); training only, the actor never reads it
+    privileged_critic: bool = False
     learning_rate: float = 3e-4
     lr_decay: float = 0.96
     lr_decay_every: int = 512  # optimiser steps

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import claims, env as envmod, lookahead, oracle
+from jaxmripp.sim import claims, env as envmod, lookahead, oracle, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation, in_sectors
@@ -84,6 +84,12 @@ class RolloutStats:
 
 def make_network(cfg: Config) -> ActorCritic:
     return ActorCritic(cfg.policy, central_critic=cfg.ppo.algo == "mappo")
+
+
+def critic_inputs(cfg: Config, obs: Observation, env_state: envmod.EnvState) -> Observation:
+    """obs (E, N, ...) as the critic reads it: with `jaxmripp.sim.privileged`'s features
+    under ppo.privileged_critic."""
+    return privileged.appended(obs, env_state) if cfg.ppo.privileged_critic else obs
 
 
 def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
@@ -186,7 +192,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         runner, pool_used = carry
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
-        offered = runner.obs
+        offered = critic_inputs(cfg, runner.obs, runner.env_state)
         if cfg.train.sectors:
             offered = jax.vmap(in_sectors, in_axes=(0, 0, None))(offered, runner.env_state, dyn)
         if cfg.policy.claims:

@@ -38,7 +38,7 @@ from jaxmripp.learn.params import first_difference, with_prior_weight
 from jaxmripp.learn.policy import initial_memory
 from jaxmripp.parallel import progress
 from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
-from jaxmripp.sim.observation import Observation
+from jaxmripp.sim import privileged
 from jaxmripp.sim.params import DynamicParams, EnvParams
 
 # Re-exported: the run folder's helpers are used through this module.
@@ -165,7 +165,7 @@ class Trainer:
         # One compiled program: run eagerly, the initialisers compile op by op (hundreds).
         params = jax.jit(self.network.init)(jax.random.fold_in(key, PARAMS_SALT),
                                             initial_memory(self.cfg.policy),
-                                            Observation.zeros(self.env_params))
+                                            privileged.observation_zeros(self.env_params, self.cfg.ppo.privileged_critic))
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32),
                           None)
 
@@ -175,7 +175,7 @@ class Trainer:
         key = jax.random.PRNGKey(self.cfg.train.seed)
         if "shapes" not in self._cache:
             params = jax.eval_shape(self.network.init, key, initial_memory(self.cfg.policy),
-                                    Observation.zeros(self.env_params))
+                                    privileged.observation_zeros(self.env_params, self.cfg.ppo.privileged_critic))
             self._cache["shapes"] = TrainState(
                 params, jax.eval_shape(self.optimizer.init, params), jax.eval_shape(lambda: key),
                 jax.ShapeDtypeStruct((), jnp.int32), None)
@@ -236,7 +236,8 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
         teacher = ppo.Teacher.at(cfg.ppo, state.update)
         runner, transitions, stats = ppo.rollout(key_rollout, state.runner, state.params,
                                                  network, cfg, env_params, dyn, data, teacher)
-        last_value = ppo.values(network, state.params, runner.memory, runner.obs,
+        last_value = ppo.values(network, state.params, runner.memory,
+                                ppo.critic_inputs(cfg, runner.obs, runner.env_state),
                                 cfg.train.blocks, data)
         params, opt_state, losses = ppo.update(key_update, state.params, state.opt_state,
                                                network, optimizer, transitions, last_value,
