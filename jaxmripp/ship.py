@@ -202,8 +202,8 @@ def rewrite_metadata(folder: Path, results: list[Path] = (), commit: str | None 
                                               checkpoint, evaluations, commit))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m jaxmripp.ship", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.ship") -> int:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", type=Path, nargs="?")
     parser.add_argument("out_dir", type=Path, nargs="?")

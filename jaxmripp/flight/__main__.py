@@ -23,8 +23,8 @@ from jaxmripp.flight.mission import PLANNERS
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m jaxmripp.flight", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.flight") -> int:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=Path("pretrained/default"),
                         help="exported policy (directory with policy.json)")
