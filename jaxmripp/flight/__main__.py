@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp.config import presets
 from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.mission import PLANNERS
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
@@ -26,7 +27,7 @@ from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
 def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.flight") -> int:
     parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--export", type=Path, default=Path("pretrained/default"),
+    parser.add_argument("--export", type=Path, default=presets.in_checkout("pretrained/default"),
                         help="exported policy (directory with policy.json)")
     parser.add_argument("--planner", default="policy", choices=PLANNERS)
     parser.add_argument("--seed", type=int, default=0, help="city and planner seed")
