@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for processes in (1, args.processes):
             runs = (args.keep or Path(tmp)) / f"p{processes}"
-            command = ["train.py", "--config", args.config, *overrides, "--no-eval",
+            command = ["-m", "jaxmripp", "train", "--config", args.config, *overrides, "--no-eval",
                        "--runs", str(runs)]
             for i, result in enumerate(run_local(command, processes, timeout_s=3600)):
                 if result.returncode:

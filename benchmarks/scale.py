@@ -49,7 +49,8 @@ range with std bands, the global figures as horizontal bands.
 
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
-        [--eval --worlds W --policy pretrained/default [--figure FILE]] [section.key=value ...]
+        [--eval --worlds W --policy pretrained/default [--figure FILE]]
+        [section.key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
         [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
