@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install train test flight bench results ablations clean
+.PHONY: install train test demo flight bench results ablations clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -20,6 +20,28 @@ train: $(STAMP)
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile --no-loadscope-reorder
+
+# The shipped policy against nbv_team and random on 5 held-out worlds x 2 trials, then flown
+# by the NumPy runtime (1-2 minutes on 2 cores): tables on the terminal, pictures in
+# runs/demo/eval. Compiling dominates so short an evaluation, so XLA's CPU backend skips
+# LLVM optimisation and uses its classic fusion emitters (the test suite's settings,
+# tests/conftest.py): about 3x faster compiles, the same figures; left out where the
+# installed jaxlib does not know the flags.
+DEMO_XLA := --xla_backend_optimization_level=0 --xla_cpu_use_fusion_emitters=false
+DEMO_OUT := runs/demo/eval
+
+demo: $(STAMP)
+	@flags="$(DEMO_XLA)"; \
+	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/python -c "import jax.numpy as j; j.zeros(1).block_until_ready()" \
+	  >/dev/null 2>&1 || flags=""; \
+	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/jaxmripp eval --config eval_paper \
+	  --policy policy=pretrained/default_fast --out $(DEMO_OUT) --no-timing \
+	  "eval.planners=[policy,nbv_team,random]" "eval.radio_ranges=[.inf]" eval.worlds=5 \
+	  eval.trials=2 "eval.pairs=[policy:nbv_team,policy:random]" && \
+	echo "the same policy flown by the NumPy runtime (jaxmripp demo), world seed 0:" && \
+	$(BIN)/jaxmripp demo --export pretrained/default_fast --quiet && \
+	echo "pictures: $(DEMO_OUT)/ (episode_*.png and .gif: one episode per planner;" \
+	  "discovered_vs_budget_0.png; missed_windows_0.png; results.md)"
 
 # One mission of simulated quadrotors flown by the shipped policy (about a minute):
 # runs/flight/result.json, paths.png (3D) and flight.gif.

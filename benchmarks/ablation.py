@@ -65,12 +65,12 @@ TRAINING_SECTIONS = ("policy", "reward", "ppo", "train")
 # The variants compare what PPO learns from each input, so no kickstarting teacher pulls
 # them toward the next-best-view rule, whatever the preset.
 NO_TEACHER = ("ppo.teacher_coef=0",)
-# preset: (training config, evaluation config, default number of updates, overrides; those
+# preset: (training preset, evaluation preset, default number of updates, overrides; those
 # outside the training sections apply to the evaluation too). The paper preset keeps the
 # default view gain its table was made with.
 PRESETS = {
-    "default": ("configs/default.yaml", "configs/eval_ablation.yaml", None, ()),
-    "paper": ("configs/pretrained_paper.yaml", "configs/eval_paper_world.yaml", 60,
+    "default": ("default", "eval_ablation", None, ()),
+    "paper": ("pretrained_paper", "eval_paper_world", 60,
               ("sensor.gain_occlusion=true", "sensor.gain_facade=nearby")),
 }
 # Every variant is evaluated under the paper's rules at short range (no sectors, no parting

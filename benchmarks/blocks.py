@@ -28,6 +28,7 @@ import jax  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
 
 
@@ -37,11 +38,12 @@ def main(argv=None) -> int:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--blocks", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=5)
-    parser.add_argument("--config", default="configs/default.yaml")
-    parser.add_argument("overrides", nargs="*")
+    add_config_arguments(parser, "default")
     args = parser.parse_args(argv)
     if args.blocks < 1 or args.rounds < 1:
         parser.error(f"--blocks {args.blocks} --rounds {args.rounds}: both must be >= 1")
+    if args.print_config:
+        return print_config(cfgmod.load(args.config, args.overrides))
     runs = {}
     for blocks in (0, args.blocks):
         try:

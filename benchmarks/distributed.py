@@ -28,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config.cli import print_config  # noqa: E402
 
 SMALL = ["train.envs=32", "train.updates=4", "train.updates_per_chunk=1", "ppo.minibatches=4"]
 
@@ -38,10 +39,14 @@ def main(argv=None) -> int:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--blocks", type=int, help="train.blocks (default: --processes)")
-    parser.add_argument("--config", default="configs/default.yaml")
+    parser.add_argument("--config", default="default",
+                        help="a packaged preset's name or a YAML file (default: default)")
+    parser.add_argument("--print-config", action="store_true",
+                        help="print the merged config as YAML and exit")
     parser.add_argument("--keep", type=Path, help="keep the run folders here (default: a "
                         "temporary folder)")
-    parser.add_argument("overrides", nargs="*", default=SMALL)
+    parser.add_argument("overrides", nargs="*", default=SMALL, metavar="section.key=value",
+                        help=f"dotted overrides (default: {' '.join(SMALL)})")
     args = parser.parse_args(argv)
     if args.processes < 2:
         parser.error(f"--processes: got {args.processes}; allowed: 2 or more")
@@ -51,6 +56,8 @@ def main(argv=None) -> int:
         cfg = cfgmod.load(args.config, overrides)
     except cfgmod.ConfigError as err:
         parser.error(str(err))
+    if args.print_config:
+        return print_config(cfg)
 
     from jaxmripp.learn.train import restore  # noqa: PLC0415
     from jaxmripp.parallel.local import max_relative_difference, run_local  # noqa: PLC0415
@@ -59,7 +66,7 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for processes in (1, args.processes):
             runs = (args.keep or Path(tmp)) / f"p{processes}"
-            command = ["train.py", "--config", args.config, *overrides, "--no-eval",
+            command = ["-m", "jaxmripp", "train", "--config", args.config, *overrides, "--no-eval",
                        "--runs", str(runs)]
             for i, result in enumerate(run_local(command, processes, timeout_s=3600)):
                 if result.returncode:

@@ -19,7 +19,7 @@ Shares are part time / step time; they need not sum to 1 (the rest is motion, ra
 copies, and XLA fuses differently when a part is compiled alone).
 
 Usage (from the repository root): python benchmarks/env.py [--envs 1024] [--robots 3]
-    [--size 50] [--repeats 5] [--set key=value ...]
+    [--size 50] [--repeats 5] [--print-config] [section.key=value ...]
 """
 
 from __future__ import annotations
@@ -37,6 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 from common import (RandomTeamStepper, batch_arguments, emit, entry_point,  # noqa: E402
                     median_seconds)
 from jaxmripp import config  # noqa: E402
+from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 from jaxmripp.sim import comms, feeding, geometry, gp, maps, sensing, view  # noqa: E402
 from jaxmripp.sim import xla_options  # noqa: E402
 from jaxmripp.sim.xla_options import simulation_jit  # noqa: E402
@@ -44,19 +45,26 @@ from jaxmripp.sim import env as envmod  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
+def setting(args) -> config.Config:
+    """The config of the benchmarked setting."""
+    return config.load(None, [f"world.size={args.size}", f"robots.count={args.robots}",
+                              *args.overrides])
+
+
 def build(args):
     """Static and dynamic env parameters of the benchmarked setting."""
-    overrides = [f"world.size={args.size}", f"robots.count={args.robots}", *args.set]
-    cfg = config.load(None, overrides)
+    cfg = setting(args)
     return EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
 
 
 @entry_point
-def main() -> None:
+def main(argv=None) -> int | None:
     parser = batch_arguments(__doc__)
-    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
     parser.add_argument("--no-parts", action="store_true", help="skip the per-part timings")
-    args = parser.parse_args()
+    add_config_arguments(parser, None, "dotted overrides after --size and --robots")
+    args = parser.parse_args(argv)
+    if args.print_config:
+        return print_config(setting(args))
     params, dyn = build(args)
     envs, n = args.envs, params.n_robots
     common = dict(envs=envs, robots=n, size=params.size, candidates=params.n_candidates,

@@ -14,7 +14,9 @@ the median wall and CPU time per step of each and their ratios (JSON lines):
 
 Usage (from the repository root):
     python benchmarks/env_ab.py --base COMMIT [--envs 1024] [--rounds 4] [--steps 6]
-        [--set key=value ...] [--tree-set key=value ...]
+        [--tree-set section.key=value ...] [section.key=value ...]
+The positional overrides apply to both sides; each --tree-set (repeatable) to the working
+tree's side only.
 """
 
 from __future__ import annotations
@@ -73,18 +75,22 @@ def build_stepper(package: str, overrides: list[str], envs: int) -> RandomTeamSt
 
 
 @entry_point
-def main() -> None:
+def main(argv=None) -> None:
     parser = ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--base", required=True, help="the commit to compare against")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--rounds", type=int, default=4)
     parser.add_argument("--steps", type=int, default=6)
-    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
-    parser.add_argument("--tree-set", nargs="*", default=[],
-                        help="overrides for the working tree's side only (with --base HEAD: "
-                             "a setting against the same code without it)")
-    args = parser.parse_args()
-    overrides = ["world.size=50", "robots.count=3", *args.set]
+    parser.add_argument("--tree-set", action="append", default=[],
+                        metavar="section.key=value",
+                        help="an override for the working tree's side only, repeatable (with "
+                             "--base HEAD: a setting against the same code without it); a "
+                             "separate list from the positional overrides, which both sides "
+                             "get")
+    parser.add_argument("overrides", nargs="*", metavar="section.key=value",
+                        help="dotted config overrides for both sides")
+    args = parser.parse_args(argv)
+    overrides = ["world.size=50", "robots.count=3", *args.overrides]
     with tempfile.TemporaryDirectory() as tmp:
         export_package(args.base, tmp)
         sys.path.insert(0, tmp)

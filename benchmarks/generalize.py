@@ -34,8 +34,9 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from common import ArgumentParser, emit, emit_text, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 
-PRESET = "configs/eval_paper.yaml"
+PRESET = "eval_paper"  # the packaged preset (configs/eval_paper.yaml)
 CLASSICAL = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv")
 FOOTPRINTS = ("world.footprint=5", "world.footprint_min=2")
 # name -> overrides of the default Table I cell (N = 3, B = 10, random layout, rho = inf)
@@ -74,7 +75,7 @@ def cell_config(name: str, planners: list[str], worlds: int, trials: int,
 def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--policy", type=Path, default=Path("pretrained/default"))
+    parser.add_argument("--policy", type=Path, default=presets.in_checkout("pretrained/default"))
     parser.add_argument("--worlds", type=int, default=10)
     parser.add_argument("--trials", type=int, default=5)
     parser.add_argument("--cells", default=",".join(CELLS),

@@ -8,8 +8,8 @@ coordinated, greedy, mcts, rig, random, and three upper references that read the
 flight ahead with claims heard only in radio range (oracle_ahead), and nbv_targets with
 each building's true remaining windows (oracle_rate). Every planner runs the same worlds
 and trials, so comparisons are paired by world (`jaxmripp.evaluation.stats`).
-Preset `default` is our world (configs/eval_paper.yaml); `paper` the reference's world
-(configs/eval_paper_world.yaml, the same protocol). Figures (JSON lines):
+Preset `default` is our world (the eval_paper preset, configs/eval_paper.yaml); `paper` the
+reference's world (eval_paper_world, the same protocol). Figures (JSON lines):
 
     quality.policy_pct               mean % of windows found at rho = inf
     quality.policy_pct_rho01         ... at rho = 0.1
@@ -36,11 +36,13 @@ references) are not printed.
 Usage (from the repository root):
     python benchmarks/quality.py [--policy DIR [--policy DIR ...] | --seeds DIR DIR ...]
                                  [--preset default|paper] [--worlds 25] [--trials 10]
-                                 [--planners policy,...] [--out DIR] [--set key=value ...]
+                                 [--planners policy,...] [--out DIR] [--print-config]
+                                 [section.key=value ...]
 --policy defaults to pretrained/<preset>; without one there, only the baselines run.
 Several policies (the training seeds of one recipe) run in one sweep as policy,
 policy_2, ...; the policy figures are the first one's.
---out also writes the evaluation tables and plots (results.md, ...) there.
+--out also writes the evaluation tables and plots (results.md, ...) there. The dotted
+overrides apply after the protocol's settings.
 """
 
 from __future__ import annotations
@@ -58,8 +60,10 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from common import ArgumentParser, emit, emit_p, emit_text, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
+from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 
-PRESETS = {"default": "configs/eval_paper.yaml", "paper": "configs/eval_paper_world.yaml"}
+PRESETS = {"default": "eval_paper", "paper": "eval_paper_world"}  # packaged presets
 BASELINES = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv", "coordinated", "greedy", "mcts",
              "rig", "random")
 REFERENCES = cfgmod.REFERENCES
@@ -80,14 +84,15 @@ def main(argv=None) -> int:
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--planners", help="comma-separated subset (default: all)")
     parser.add_argument("--out", type=Path, help="also write tables and plots here")
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    add_config_arguments(parser, None, "dotted overrides after the protocol's, e.g. "
+                                       "sensor.gain_occlusion=true")
     args = parser.parse_args(argv)
     given = args.policy + args.seeds
     for folder in given:  # a folder of another kind or a corrupt export fails here
         folders.policy(folder)
     if len(set(given)) < len(given):
         parser.error("--policy / --seeds: a folder is given twice; allowed: distinct policies")
-    default = Path("pretrained") / args.preset
+    default = presets.in_checkout(Path("pretrained") / args.preset)
     shipped = folders.is_export(default) or folders.is_training_run(default)
     policy_dirs = given or ([default] if shipped else [])
     names = ["policy"] + [f"policy_{i + 1}" for i in range(1, len(policy_dirs))]
@@ -100,14 +105,17 @@ def main(argv=None) -> int:
     overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",
                  "eval.radio_ranges=[.inf, 0.1]", "eval.budgets=[10.0]",
                  "eval.budget_mode=team", f"eval.worlds={args.worlds}",
-                 f"eval.trials={args.trials}", "eval.layout=random", "eval.pairs=[]", *args.set]
+                 f"eval.trials={args.trials}", "eval.layout=random", "eval.pairs=[]",
+                 *args.overrides]
     cfg = cfgmod.load(PRESETS[args.preset], overrides)
     missing = [name for name in planners if name not in cfg.eval.planners]
     missing += [f"rho = {rho:g}" for rho in (math.inf, 0.1) if rho not in cfg.eval.radio_ranges]
     if missing:
-        parser.error(f"--set: the figures need {', '.join(missing)} in the sweep "
+        parser.error(f"overrides: the figures need {', '.join(missing)} in the sweep "
                      f"(eval.planners must include {', '.join(planners)}; eval.radio_ranges "
                      "inf and 0.1)")
+    if args.print_config:
+        return print_config(cfg)
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import outputs, sweep  # noqa: PLC0415
@@ -124,7 +132,7 @@ def main(argv=None) -> int:
     command = "python benchmarks/quality.py " + " ".join(argv or sys.argv[1:])
     emit_text("quality.command", command)  # for jaxmripp.ship
     emit_text("quality.rules", {  # what the figures were measured under
-        "config": PRESETS[args.preset], "overrides": overrides,
+        "config": f"configs/{PRESETS[args.preset]}.yaml", "overrides": overrides,
         "policy": [str(d) for d in policy_dirs] if "policy" in planners else None,
         "worlds": cfg.eval.worlds, "trials": cfg.eval.trials, "seed": cfg.eval.seed})
     if args.out:

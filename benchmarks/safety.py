@@ -13,8 +13,10 @@ planner alike; the figures say whether they hold and what they cost:
     safety.discovered_pct.<planner>.rho<r>         per radio range
 
 Usage (from the repository root):
-    python benchmarks/safety.py [--policy RUN_DIR] [--worlds 50] [--set key=value ...]
---set applies config overrides (e.g. safety.flight=optimistic for the unsafe reference).
+    python benchmarks/safety.py [--policy RUN_DIR] [--worlds 50] [--print-config]
+                                [section.key=value ...]
+The dotted overrides apply after the protocol's settings (e.g. safety.flight=optimistic for
+the unsafe reference).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ import numpy as np  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
+from jaxmripp.config.cli import add_config_arguments, fail, print_config  # noqa: E402
 
 RANGES = (0.3, 0.1)
 BASELINES = ("random", "greedy", "coordinated")
@@ -42,21 +45,24 @@ def main(argv=None) -> int:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", type=Path, help="a trained run directory")
     parser.add_argument("--worlds", type=int, default=50)
-    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE")
+    add_config_arguments(parser, None, "dotted overrides after the protocol's, e.g. "
+                                       "safety.flight=optimistic")
     args = parser.parse_args(argv)
     if args.policy:  # a folder of another kind or a corrupt export fails here, in one line
         folders.policy(args.policy)
-    base = args.policy / "config.yaml" if args.policy else "configs/default.yaml"
+    base = args.policy / "config.yaml" if args.policy else "default"
     planners = (["policy"] if args.policy else []) + list(BASELINES)
     overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",
                  "eval.world_sizes=[50]", f"eval.radio_ranges=[{','.join(map(str, RANGES))}]",
                  "eval.budgets=[10.0]", "eval.budget_mode=team", f"eval.worlds={args.worlds}",
-                 "eval.trials=1", "eval.layout=random", "eval.pairs=[]", *args.set]
+                 "eval.trials=1", "eval.layout=random", "eval.pairs=[]",
+                 *args.overrides]
     try:
         cfg = cfgmod.load(base, overrides)
     except cfgmod.ConfigError as err:
-        print(f"error: {err}", file=sys.stderr)
-        return 2
+        return fail(err)
+    if args.print_config:
+        return print_config(cfg)
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415

@@ -49,7 +49,8 @@ range with std bands, the global figures as horizontal bands.
 
 Usage (from the repository root):
     python benchmarks/scale.py [--teams 3,16,32,64] [--size 125] [--envs 2] [--repeats 3]
-        [--eval --worlds W --policy pretrained/default [--figure FILE]] [--set key=value ...]
+        [--eval --worlds W --policy pretrained/default [--figure FILE]]
+        [section.key=value ...]
     python benchmarks/scale.py --grid [--world-sizes 75,100,125] [--grid-teams 16,32,48,64]
         [--worlds W] [--figure docs/scale_grid.png] [--exchanges global,single_hop,relay]
         [--global-planners policy,coordinated,nbv,nbv_team] [--range-planners policy,nbv_team]
@@ -76,6 +77,7 @@ from jaxmripp.config.cli import fail  # noqa: E402
 from scale_report import (PAIRS, PAPER_RADIO, PLANNERS, grid_tables, plot_grid,  # noqa: E402
                           plot_ranges, read_grid)
 from jaxmripp import config, folders  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
@@ -101,12 +103,13 @@ def _parser() -> ArgumentParser:
     parser.add_argument("--radio-range", type=float, default=0.12)
     parser.add_argument("--envs", type=int, default=2)
     parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--set", nargs="*", default=[], help="extra config overrides")
+    parser.add_argument("overrides", nargs="*", metavar="section.key=value",
+                        help="dotted config overrides for every cell")
     parser.add_argument("--eval", action="store_true", help="also evaluate the largest team")
     parser.add_argument("--no-timing", action="store_true",
                         help="with --eval: the evaluation only, without the timing")
     parser.add_argument("--worlds", type=int, default=4, help="worlds of the --eval cell")
-    parser.add_argument("--policy", type=Path, default=Path("pretrained/default"),
+    parser.add_argument("--policy", type=Path, default=presets.in_checkout("pretrained/default"),
                         help="trained run or shipped folder for --eval, --grid and --ranges")
     parser.add_argument("--grid", action="store_true", help="the scalability grid only")
     parser.add_argument("--ranges", default=None,
@@ -152,7 +155,7 @@ def _run(args, argv=None) -> None:
     exchanges, global_planners, range_planners = _planner_lists(args)
     if args.ranges is not None:
         evaluate_ranges(args.policy, max(int(n) for n in args.teams.split(",")), args.size,
-                        _radio_ranges(args.ranges, range_planners), args.worlds, args.set,
+                        _radio_ranges(args.ranges, range_planners), args.worlds, args.overrides,
                         args.figure, exchanges, global_planners, range_planners, argv)
     elif args.grid:
         sizes = [int(g) for g in args.world_sizes.split(",")]
@@ -161,14 +164,14 @@ def _run(args, argv=None) -> None:
             raise UsageError(f"--world-sizes {unknown}: allowed {sorted(PAPER_RADIO)} (the "
                              "paper's worlds, each with its radio range)")
         evaluate_grid(args.policy, sizes, [int(n) for n in args.grid_teams.split(",")],
-                      args.worlds, args.set, args.figure, exchanges, global_planners,
+                      args.worlds, args.overrides, args.figure, exchanges, global_planners,
                       range_planners, argv)
     else:
         teams = sorted(int(n) for n in args.teams.split(","))
         largest = max(teams) if args.eval and args.no_timing else time_teams(teams, args)
         if args.eval:
             evaluate_cell(args.policy, largest, args.size, args.radio_range, args.worlds,
-                          args.set, args.figure, argv)
+                          args.overrides, args.figure, argv)
 
 
 def _planner_lists(args) -> tuple[list[str], list[str], list[str]]:
@@ -204,11 +207,11 @@ def time_teams(teams: list[int], args) -> int:
     """Times the random team's step for each N of `teams` (JSON lines) -> the largest N."""
     micros = {}
     for n in teams:
-        # The random team steps without the sector rule, whatever --set gives the sweeps
+        # The random team steps without the sector rule, whatever the overrides give the sweeps
         # (a radio.sector_count above a timed team's N would otherwise be refused).
         cfg = config.load(None, [f"world.size={args.size}", f"robots.count={n}",
                                  f"radio.range={args.radio_range}",
-                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.set,
+                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.overrides,
                                  "eval.sectors=false", "train.sectors=false"])
         stepper = RandomTeamStepper(EnvParams.from_config(cfg), DynamicParams.from_config(cfg),
                                     args.envs)

@@ -37,14 +37,14 @@ import jax.numpy as jnp  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point, median_seconds  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 from jaxmripp.learn import ppo  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
 
 
 @entry_point
-def main() -> None:
+def main(argv=None) -> int | None:
     parser = ArgumentParser(description=__doc__)
-    parser.add_argument("--config", default="configs/default.yaml")
     parser.add_argument("--envs", type=int, default=1024)
     parser.add_argument("--steps", type=int, default=16, help="rollout steps timed per call")
     parser.add_argument("--rounds", type=int, default=3,
@@ -53,10 +53,12 @@ def main() -> None:
                         help="skip the PPO update timing (the slowest part at 1024 envs)")
     parser.add_argument("--loop", type=int, default=0, metavar="CHUNKS",
                         help="time CHUNKS chunks of the training loop instead (after one more)")
-    parser.add_argument("overrides", nargs="*")
-    args = parser.parse_args()
+    add_config_arguments(parser, "default", "dotted overrides after --envs and --steps")
+    args = parser.parse_args(argv)
     cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
                                     f"train.rollout_steps={args.steps}", *args.overrides])
+    if args.print_config:
+        return print_config(cfg)
     if args.loop:
         time_loop(args, cfg)
         return

@@ -76,8 +76,8 @@ def fly(height: np.ndarray, start: np.ndarray, end: np.ndarray, size: int, shell
     return stop, hit
 
 
-def main(argv: list[str] | None = None) -> float:
-    parser = ArgumentParser(prog="python -m jaxmripp.demo", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -> float:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--export", type=Path, default=None,
                         help="export directory (python -m jaxmripp.export RUN_DIR); "

@@ -110,8 +110,8 @@ def export_run(run_dir: str | Path, best: bool = False, out_dir: str | Path | No
     return export(cfg, params, out_dir or Path(run_dir) / "export", source)
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m jaxmripp.export", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.export") -> int:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", type=Path)
     parser.add_argument("--best", action="store_true", help="export the best checkpoint")

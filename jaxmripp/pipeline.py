@@ -17,7 +17,7 @@ from jaxmripp.learn import policy as policymod, train as trainmod
 from jaxmripp.learn.checkpoint import CheckpointError
 from jaxmripp.runtime import weights as weights_format
 from jaxmripp.runtime.errors import RuntimeInputError
-from jaxmripp.config import Config
+from jaxmripp.config import Config, presets
 from jaxmripp.parallel.mesh import is_main_process
 
 
@@ -53,12 +53,18 @@ def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
     return Path("runs") / first.name / "eval"
 
 
+def initial_source(cfg: Config) -> Path:
+    """The folder `train.init_from` names: relative to the working directory, else to the
+    source checkout (`pretrained/default_ppo` of a curriculum preset, from anywhere)."""
+    return presets.in_checkout(cfg.train.init_from)
+
+
 def check_initial_params(cfg: Config) -> None:
     """Checks, by its files alone (no JAX), that `train.init_from` names a training run
     with a checkpoint or an intact export; ConfigError naming the key otherwise."""
     if cfg.train.init_from:
         try:
-            folders.policy(cfg.train.init_from, with_config=False)
+            folders.policy(initial_source(cfg), with_config=False)
         except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError) as err:
             raise cfgmod.ConfigError(f"train.init_from: {err}") from None
 
@@ -69,7 +75,7 @@ def initial_params(cfg: Config):
     if not cfg.train.init_from:
         return None
     try:
-        return trained_params(cfg.train.init_from)
+        return trained_params(initial_source(cfg))
     except (cfgmod.ConfigError, folders.FolderError, RuntimeInputError, CheckpointError) as err:
         raise cfgmod.ConfigError(f"train.init_from: {err}") from None
 

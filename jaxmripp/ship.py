@@ -8,8 +8,9 @@ OUT_DIR gets the export the runtime and `eval.py --policy NAME=OUT_DIR` load
 metadata.json, every figure of which is read from a file a command wrote:
 
     commit               HEAD, or --commit (the commit the run trained with)
-    command, init_from   the training command: the preset in configs/ that loads to the
-                         run's config, else the shipped config.yaml; where it started from
+    command, init_from   the training command: the packaged preset (configs/ in the
+                         repository) that loads to the run's config, else the shipped
+                         config.yaml; where it started from
     train_minutes        the sum of the chunks' times in metrics.jsonl
     updates, agent_steps, training_discovered   metrics.jsonl's last record
     evaluations          per result FILE (the JSON lines benchmarks/quality.py or
@@ -34,11 +35,11 @@ import sys
 from pathlib import Path
 
 from jaxmripp import config as cfgmod, folders
+from jaxmripp.config import presets
 from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.learn.metrics import episode_mean
 
 METADATA = "metadata.json"
-PRESETS = Path("configs")
 # Lines of a result file that are not figures: how it was made, and a training figure
 # whose source is the run's own metrics.jsonl.
 NOT_FIGURES = (".command", ".rules", ".train_minutes")
@@ -113,12 +114,13 @@ def written_beside(path: Path) -> tuple[str | None, dict | None]:
 
 
 def training_command(cfg: cfgmod.Config, shipped_config: Path) -> str:
-    """`python train.py --config X`: X the first preset in configs/ that loads to exactly
-    `cfg`, else the shipped config.yaml (which does)."""
-    for preset in sorted(PRESETS.glob("*.yaml")):
+    """`python train.py --config X`: X the first packaged preset that loads to exactly
+    `cfg` (as configs/NAME.yaml, the path from the repository root), else the shipped
+    config.yaml (which does)."""
+    for name in presets.names():
         try:
-            if cfgmod.load(preset) == cfg:
-                return f"python train.py --config {preset}"
+            if cfgmod.load(presets.PRESETS / f"{name}.yaml") == cfg:
+                return f"python train.py --config configs/{name}.yaml"
         except cfgmod.ConfigError:
             continue
     return f"python train.py --config {shipped_config}"
@@ -200,8 +202,8 @@ def rewrite_metadata(folder: Path, results: list[Path] = (), commit: str | None 
                                               checkpoint, evaluations, commit))
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m jaxmripp.ship", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.ship") -> int:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("run_dir", type=Path, nargs="?")
     parser.add_argument("out_dir", type=Path, nargs="?")

@@ -20,14 +20,14 @@ SCRIPTS = {  # script: (arguments, figures it must print)
     "env.py": (TINY_BATCH, ["env.agent_steps_per_s", "env.slots_at_robot",
                             "env.share_candidates", "env.share_view_gain",
                             "env.share_share_maps", "env.share_gps"]),
-    "env_ab.py": (["--base", "HEAD", "--envs", "4", "--rounds", "1", "--steps", "1", "--set",
+    "env_ab.py": (["--base", "HEAD", "--envs", "4", "--rounds", "1", "--steps", "1",
                    "world.size=20", "--tree-set", "gp.peer_rounds=1"],
                   ["env_ab.wall_ratio", "env_ab.cpu_ratio"]),
     "sensing.py": (TINY_BATCH, ["sensing.robot_casts_per_s", "sensing.frustum_casts_per_s"]),
     "gp.py": ([], ["gp.step_per_s", "gp.speedup_vs_refactor", "gp.block_speedup_vs_adds"]),
     "runtime.py": ([], ["runtime.decision_ms", "runtime.map_message_bytes",
                         "runtime.policy_forward_ms"]),
-    "train.py": (["--config", "configs/smoke.yaml", "--envs", "8", "--steps", "2",
+    "train.py": (["--config", "smoke", "--envs", "8", "--steps", "2",
                   "--rounds", "1"],
                  ["train.rollout_agent_steps_per_s", "train.update_samples_per_s",
                   "train.env_share_of_iteration"]),
@@ -71,14 +71,14 @@ def test_each_line_names_the_machine_by_vendor_and_family():
 
 
 def test_quality_refuses_a_sweep_without_the_planners_of_its_figures():
-    """`quality.py --set` may change the protocol's settings but not drop a planner or a
-    radio range its figures are defined over: one line naming what is missing, exit 2,
+    """quality.py's overrides may change the protocol's settings but not drop a planner or
+    a radio range its figures are defined over: one line naming what is missing, exit 2,
     before anything is compiled."""
     done = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "quality.py"),
-                           "--worlds", "1", "--set", "eval.planners=[policy,nbv,oracle]"],
+                           "--worlds", "1", "eval.planners=[policy,nbv,oracle]"],
                           cwd=ROOT, capture_output=True, text=True, timeout=120)
     assert done.returncode == 2, done.stderr[-3000:]
     error = done.stderr.strip().splitlines()
-    assert len(error) == 1 and error[0].startswith("error: --set:"), error
+    assert len(error) == 1 and error[0].startswith("error: overrides:"), error
     assert "nbv_ahead, nbv_team, coordinated, greedy, mcts, rig, random" in error[0]
     assert done.stdout == ""

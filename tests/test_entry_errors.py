@@ -182,7 +182,7 @@ def test_flight_and_demo_refuse_anything_but_an_intact_export(bad, capsys, kind)
 def test_a_benchmark_refuses_a_policy_folder_of_no_kind_or_corrupt(bad, capsys, kind):
     line, _ = unchanged(bad, capsys, lambda: quality.main(
         ["--policy", str(bad[kind]), "--worlds", "1", "--trials", "1", "--planners", "policy",
-         "--set", "world.size=20"]))
+         "world.size=20"]))
     assert WORDS[kind] in line
 
 

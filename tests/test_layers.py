@@ -1,11 +1,12 @@
 """The package's import arrows point one way: spec <- config <- parallel <- sim <- learn <-
 evaluation.
 
-Top-level modules (pipeline, export, demo, allocator) sit above every package; the runtime
+Top-level modules (pipeline, export, demo, allocator) and `cli` (the command line, whose
+commands call them) sit above every package; the runtime
 imports only itself and the spec; `flight` (physics in the loop) flies the runtime in the
 simulator's cities, so it may import the runtime and the layers up to sim; `marl` (the
 JaxMARL adapter) sits on the layers up to learn, beside evaluation. Nothing imports
-`flight` or `marl` but top-level modules.
+`flight` or `marl` but top-level modules and `cli`.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import jaxmripp
 
 PACKAGE = Path(jaxmripp.__file__).parent
 LAYERS = ("spec", "config", "parallel", "sim", "learn", "evaluation")
+TOP_LEVEL = {path.stem for path in PACKAGE.glob("*.py")} - {"__init__", "__main__"}
 
 
 def imported_subpackages(path: Path) -> set[str]:
@@ -33,6 +35,8 @@ def imported_subpackages(path: Path) -> set[str]:
 
 
 def allowed(layer: str) -> set[str]:
+    if layer == "cli":
+        return {"cli", "runtime", "flight", "marl", *LAYERS, *TOP_LEVEL}
     if layer == "runtime":
         return {"runtime", "spec"}
     if layer == "flight":
@@ -54,8 +58,8 @@ def violations(root: Path) -> list[str]:
 
 
 def test_every_import_points_down():
-    assert set(LAYERS) | {"runtime", "flight", "marl"} == {p.name for p in PACKAGE.iterdir()
-                                         if p.is_dir() and (p / "__init__.py").exists()}
+    assert set(LAYERS) | {"runtime", "flight", "marl", "cli"} == {
+        p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
     assert violations(PACKAGE) == []
 
 

@@ -125,7 +125,7 @@ def test_eval_cell_prints_the_ratio_of_its_own_figures_and_draws_the_curves(tmp_
                            "--figure", str(figure),
                            # more shared sectors than the smallest timed team has robots:
                            # the timing steps without the rule, the N = 3 cell keeps it
-                           "--set", "eval.sectors=true", "radio.sector_count=3"],
+                           "eval.sectors=true", "radio.sector_count=3"],
                           capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr
     lines = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}

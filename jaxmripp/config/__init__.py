@@ -6,7 +6,9 @@ Every section is a frozen dataclass, so a whole `Config` is hashable and can be 
 raises `ConfigError` with one line naming the key, the value and what is allowed.
 
 Modules: `sections` (the dataclasses and their defaults), `rules` (allowed values and
-`validate`), `loading` (YAML presets, overrides, conversion to plain data), `errors`.
+`validate`), `loading` (YAML presets, overrides, conversion to plain data), `presets`
+(the presets packaged in jaxmripp/configs, by name), `cli` (the entry points' error
+convention), `errors`.
 """
 
 from jaxmripp.config.errors import ConfigError

@@ -1,6 +1,7 @@
 """YAML presets and dotted overrides, merged into the defaults and validated on load.
 
-A preset may name a `base` preset (a path relative to its own folder) whose values it
+A preset is a file or the name of one packaged in jaxmripp/configs (`default`; see
+`presets`). It may name a `base` preset (a path relative to its own folder) whose values it
 changes; overrides (`world.size=64`, the value parsed as YAML) apply last. Unknown keys,
 mistyped values and values out of range raise `ConfigError` with one line.
 """
@@ -16,6 +17,7 @@ from typing import Any
 
 import yaml
 
+from jaxmripp.config import presets
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.rules import validate
 from jaxmripp.config.sections import Config
@@ -140,10 +142,11 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 
 def load(path: str | Path | None = None, overrides: typing.Sequence[str] = ()) -> Config:
-    """Reads a YAML preset (which may name a `base` preset) and applies dotted overrides."""
+    """Reads a YAML preset, a file or a packaged preset's name (which may name a `base`
+    preset), and applies dotted overrides."""
     cfg = Config()
     if path is not None:
-        cfg = _load_file(Path(path))
+        cfg = _load_file(presets.resolve(path))
     if overrides:
         merged: dict[str, dict[str, Any]] = {}
         for text in overrides:

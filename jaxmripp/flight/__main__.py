@@ -18,15 +18,16 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxmripp.config import presets
 from jaxmripp.config.cli import ArgumentParser, fail
 from jaxmripp.flight.mission import PLANNERS
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = ArgumentParser(prog="python -m jaxmripp.flight", description=__doc__,
+def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.flight") -> int:
+    parser = ArgumentParser(prog=prog, description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--export", type=Path, default=Path("pretrained/default"),
+    parser.add_argument("--export", type=Path, default=presets.in_checkout("pretrained/default"),
                         help="exported policy (directory with policy.json)")
     parser.add_argument("--planner", default="policy", choices=PLANNERS)
     parser.add_argument("--seed", type=int, default=0, help="city and planner seed")

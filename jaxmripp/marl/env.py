@@ -48,22 +48,12 @@ from jaxmripp.sim.observation import N_ROBOT_STATE, Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
 
-# The presets at the repository root; `load_config` is the one place a name becomes a file.
-PRESETS = Path(__file__).resolve().parents[2] / "configs"
-
 
 def load_config(source: str | Path = "default", overrides: Sequence[str] = ()) -> Config:
-    """A preset name (`smoke`: configs/smoke.yaml) or a config file, with dotted overrides
-    (`world.size=64`), read and validated by `jaxmripp.config.load`; a bad name, file or
-    value raises `ConfigError` with one line."""
-    path = Path(source)
-    if path.suffix not in (".yaml", ".yml") and path.name == str(source):  # a bare name
-        path = PRESETS / f"{source}.yaml"
-        if not path.is_file():
-            names = ", ".join(sorted(p.stem for p in PRESETS.glob("*.yaml"))) or "none found"
-            raise ConfigError(f"{source}: no such preset; allowed: a config file or a "
-                              f"preset name ({names})")
-    return load(path, overrides)
+    """A preset name (`smoke`: jaxmripp/configs/smoke.yaml) or a config file, with dotted
+    overrides (`world.size=64`), read and validated by `jaxmripp.config.load`; a bad name,
+    file or value raises `ConfigError` with one line."""
+    return load(source, overrides)
 
 
 def flat_observation(obs: Observation) -> jax.Array:
