@@ -47,8 +47,9 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import ArgumentParser, emit, emit_p, entry_point  # noqa: E402
+from common import ArgumentParser, add_quiet, emit, emit_p, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.parallel import progress  # noqa: E402
 
 VARIANTS = {
     "full": (),
@@ -107,6 +108,7 @@ def parse_args(argv):
     parser.add_argument("--trials", type=int, default=10)
     parser.add_argument("--runs", type=Path, default=Path("runs/ablation"))
     parser.add_argument("--out", type=Path, help="write the markdown table here")
+    add_quiet(parser)
     args = parser.parse_args(argv)
     args.variants = [v.strip() for v in args.variants.split(",") if v.strip()]
     unknown = [v for v in args.variants if v not in VARIANTS]
@@ -139,8 +141,10 @@ def main(argv=None) -> int:
     from jaxmripp.evaluation.stats import welch_ttest  # noqa: PLC0415
 
     minutes = {}
-    for (variant, seed), cfg in runs.items():
-        minutes[variant, seed] = train_variant(cfg, args.runs / args.preset / f"{variant}-s{seed}")
+    with progress.bar(len(runs), "ablation runs", unit="run") as bar:
+        for (variant, seed), cfg in runs.items():
+            minutes[variant, seed] = train_variant(cfg, args.runs / args.preset / f"{variant}-s{seed}")
+            bar.update()
 
     # One sweep per environment setting; policies of the same setting share it.
     found = {}

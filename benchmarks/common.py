@@ -7,6 +7,7 @@ eval.py do (jaxmripp.allocator), so benchmarks time what training runs.
 
 from __future__ import annotations
 
+import argparse
 import functools
 import importlib
 import statistics
@@ -19,6 +20,7 @@ import jax
 import figures
 from jaxmripp import allocator
 from jaxmripp.config.cli import ArgumentParser, fail
+from jaxmripp.parallel import progress
 from jaxmripp.sim.xla_options import simulation_jit
 
 allocator.keep_freed_memory()
@@ -46,6 +48,19 @@ def entry_point(main: Callable[..., int | None]) -> Callable[..., int]:
         except user_errors() as err:
             return fail(err)
     return guarded
+
+
+class _Quiet(argparse.Action):
+    def __call__(self, parser, namespace, values, option_string=None):
+        setattr(namespace, self.dest, True)
+        progress.set_quiet()
+
+
+def add_quiet(parser: argparse.ArgumentParser) -> None:
+    """--quiet: no progress bars or compiling lines (shown only on a terminal anyway); the
+    JSON lines on stdout are the same."""
+    parser.add_argument("--quiet", action=_Quiet, nargs=0, default=False,
+                        help="no progress bars or compiling lines")
 
 
 @functools.cache

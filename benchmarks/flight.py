@@ -30,7 +30,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
 
-from common import ArgumentParser, emit, entry_point  # noqa: E402
+from common import ArgumentParser, add_quiet, emit, entry_point  # noqa: E402
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS  # noqa: E402
 
 
@@ -45,14 +45,14 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=float, default=7.0)
     parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
                         help="building sides drawn from LO..HI voxels")
+    add_quiet(parser)
     args = parser.parse_args(argv)
     planners = args.planners.split(",")
     if args.worlds < 1 or "policy" not in planners or "random" not in planners:
         parser.error("--worlds must be >= 1 and --planners must include policy and random")
 
-    from tqdm import tqdm
-
     from jaxmripp.flight import city as citymod
+    from jaxmripp.parallel import progress
     from jaxmripp.flight.mission import MissionSettings, fly_mission
     from jaxmripp.flight.team import load_team, parse_footprints
 
@@ -62,7 +62,7 @@ def main(argv=None) -> None:
         parser.error(str(error))
     settings = MissionSettings(budget=args.budget)
     results = {name: [] for name in planners}
-    bar = tqdm(total=args.worlds * len(planners), desc="missions", file=sys.stderr)
+    bar = progress.bar(args.worlds * len(planners), "missions", unit="mission")
     for seed in range(args.first_seed, args.first_seed + args.worlds):
         city = citymod.generate(seed, team.world, settings.frame)
         for name in planners:

@@ -32,7 +32,7 @@ from pathlib import Path
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import ArgumentParser, emit, emit_text, entry_point  # noqa: E402
+from common import ArgumentParser, add_quiet, emit, emit_text, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
 from jaxmripp.config import presets  # noqa: E402
 
@@ -81,6 +81,7 @@ def main(argv=None) -> int:
     parser.add_argument("--cells", default=",".join(CELLS),
                         help="comma-separated cell names (default: all 12)")
     parser.add_argument("overrides", nargs="*", help="dotted overrides for every cell")
+    add_quiet(parser)
     args = parser.parse_args(argv)
     chosen = [c for c in args.cells.split(",") if c]
     unknown = [c for c in chosen if c not in CELLS]
@@ -98,10 +99,12 @@ def main(argv=None) -> int:
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
     from jaxmripp.evaluation.stats import paired_by_world  # noqa: PLC0415
+    from jaxmripp.parallel import progress  # noqa: PLC0415
 
     emit_text("generalize.command", "python benchmarks/generalize.py "
               + " ".join(argv if argv is not None else sys.argv[1:]))
     ratios, won = [], 0
+    cells = progress.bar(len(configs), "cells", unit="cell")
     for name, cfg in configs.items():
         cfg = pipeline.with_policy_inputs(cfg, [args.policy])
         policy = pipeline.sweep_planner(args.policy, cfg,
@@ -117,6 +120,8 @@ def main(argv=None) -> int:
         emit(f"generalize.cell.{name}", ours / theirs, "ratio", policy_pct=ours, best=best,
              best_pct=theirs, random_pct=float(found["random"].mean()),
              p=float(f"{test['p']:.3g}"), worlds=args.worlds, trials=args.trials)
+        cells.update()
+    cells.close()
     emit("generalize.cells_won", won, "cells", of=len(ratios))
     emit("generalize.geomean_ratio", math.exp(sum(map(math.log, ratios)) / len(ratios)), "ratio")
     return 0

@@ -58,7 +58,7 @@ import numpy as np
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from common import ArgumentParser, emit, emit_p, emit_text, entry_point  # noqa: E402
+from common import ArgumentParser, add_quiet, emit, emit_p, emit_text, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
 from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
@@ -86,6 +86,7 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, help="also write tables and plots here")
     add_config_arguments(parser, None, "dotted overrides after the protocol's, e.g. "
                                        "sensor.gain_occlusion=true")
+    add_quiet(parser)
     args = parser.parse_args(argv)
     given = args.policy + args.seeds
     for folder in given:  # a folder of another kind or a corrupt export fails here

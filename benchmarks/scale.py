@@ -71,13 +71,14 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from pathlib import Path  # noqa: E402
 
-from common import (ArgumentParser, RandomTeamStepper, emit, emit_p, emit_text,  # noqa: E402
-                    entry_point, median_seconds)
+from common import (ArgumentParser, RandomTeamStepper, add_quiet, emit, emit_p,  # noqa: E402
+                    emit_text, entry_point, median_seconds)
 from jaxmripp.config.cli import fail  # noqa: E402
 from scale_report import (PAIRS, PAPER_RADIO, PLANNERS, grid_tables, plot_grid,  # noqa: E402
                           plot_ranges, read_grid)
 from jaxmripp import config, folders  # noqa: E402
 from jaxmripp.config import presets  # noqa: E402
+from jaxmripp.parallel import progress  # noqa: E402
 from jaxmripp.sim.params import DynamicParams, EnvParams  # noqa: E402
 
 
@@ -130,6 +131,7 @@ def _parser() -> ArgumentParser:
                         help="print the tables (and draw --figure) from the scale.grid.* "
                              "JSON lines of these files, collected from --grid runs (a "
                              "cell in several keeps the last file's figure)")
+    add_quiet(parser)
     return parser
 
 
@@ -206,6 +208,7 @@ def _radio_ranges(text: str, range_planners: list[str]) -> list[float]:
 def time_teams(teams: list[int], args) -> int:
     """Times the random team's step for each N of `teams` (JSON lines) -> the largest N."""
     micros = {}
+    bar = progress.bar(len(teams), "timed teams", unit="team")
     for n in teams:
         # The random team steps without the sector rule, whatever the overrides give the sweeps
         # (a radio.sector_count above a timed team's N would otherwise be refused).
@@ -221,6 +224,8 @@ def time_teams(teams: list[int], args) -> int:
         emit(f"scale.us_per_agent_step.n{n}", micros[n], "us/agent-step", envs=args.envs,
              size=args.size, step_s=round(seconds, 4))
         del stepper
+        bar.update()
+    bar.close()
     first, last = teams[0], teams[-1]
     emit(f"scale.cost_growth_n{last}_vs_n{first}", micros[last] / micros[first], "ratio")
     # ru_maxrss is in kilobytes on Linux

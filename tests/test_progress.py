@@ -3,10 +3,13 @@
 import io
 import re
 import sys
+from pathlib import Path
 
 import pytest
 
 from jaxmripp.parallel import progress
+
+BENCHMARKS = Path(__file__).resolve().parent.parent / "benchmarks"
 
 
 class Terminal(io.StringIO):
@@ -52,3 +55,33 @@ def test_nothing_is_shown_when_quiet_or_off_a_terminal(monkeypatch, quiet, tty):
         with progress.bar(3, "training", quiet=quiet) as bar:
             bar.update(3)
     assert screen.getvalue() == "" and timer.seconds >= 0
+
+
+def test_a_quiet_process_shows_nothing_until_shown_again(monkeypatch):
+    screen = _stderr(monkeypatch)
+    progress.set_quiet()
+    try:
+        with progress.compiling("x"), progress.bar(3, "sweep") as bar:
+            bar.update(3)
+        assert screen.getvalue() == ""
+    finally:
+        progress.set_quiet(False)
+    with progress.bar(3, "sweep") as bar:
+        bar.update(3)
+    assert "sweep" in screen.getvalue()
+
+
+@pytest.mark.parametrize("script", ["quality", "scale", "ablation", "flight", "generalize"])
+def test_each_long_benchmark_takes_quiet(script, monkeypatch, capsys):
+    """--quiet of a long benchmark silences the process's bars before any work starts (its
+    parser is stopped right after, by a bad value of another flag)."""
+    import importlib
+
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    module = importlib.import_module(script)
+    monkeypatch.setattr(progress, "_QUIET", False)
+    with pytest.raises(SystemExit) as stopped:
+        module.main(["--quiet", "--no-such-flag"])
+    assert stopped.value.code == 2
+    assert "error: unrecognized arguments: --no-such-flag" in capsys.readouterr().err
+    assert progress._QUIET is True

@@ -18,7 +18,7 @@ from jaxmripp import config as cfgmod
 from jaxmripp import folders
 from jaxmripp.config.cli import (ArgumentParser, add_config_arguments, fail, presets_epilog,
                                  print_config)
-from jaxmripp.parallel import launch
+from jaxmripp.parallel import launch, progress
 from jaxmripp.runtime.errors import RuntimeInputError
 
 
@@ -40,6 +40,8 @@ def parser(prog: str | None = None) -> ArgumentParser:
     out.add_argument("--no-gif", action="store_true", help="skip the GIFs only")
     out.add_argument("--no-timing", action="store_true",
                      help="skip the separate planner.act timing (one compile less per cell)")
+    out.add_argument("--quiet", action="store_true",
+                     help="no compilation lines or progress bar (the results are the same)")
     add_config_arguments(out, "eval_paper", "dotted overrides, e.g. eval.worlds=5")
     launch.add_arguments(out)
     return out
@@ -48,6 +50,7 @@ def parser(prog: str | None = None) -> ArgumentParser:
 def main(argv=None, prog: str | None = None) -> int:
     args = parser(prog).parse_args(argv)
     allocator.keep_freed_memory()
+    progress.set_quiet(args.quiet)
     try:
         cfg = cfgmod.load(args.config, args.overrides)
         if args.print_config:

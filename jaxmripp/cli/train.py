@@ -12,7 +12,7 @@ from jaxmripp.config.cli import (ArgumentParser, add_config_arguments, fail, pre
                                  print_config)
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import CheckpointError
-from jaxmripp.parallel import launch
+from jaxmripp.parallel import launch, progress
 from jaxmripp.parallel.mesh import ShardingError, is_main_process
 
 
@@ -29,7 +29,7 @@ def parser(prog: str | None = None) -> ArgumentParser:
     out.add_argument("--runs", default="runs", help="where new run folders are created")
     out.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     out.add_argument("--quiet", action="store_true",
-                     help="no compilation lines, progress bar or line per chunk")
+                     help="no compilation lines, progress bars or line per chunk")
     add_config_arguments(out, "default")
     launch.add_arguments(out)
     return out
@@ -38,6 +38,7 @@ def parser(prog: str | None = None) -> ArgumentParser:
 def main(argv=None, prog: str | None = None) -> int:
     args = parser(prog).parse_args(argv)
     allocator.keep_freed_memory()
+    progress.set_quiet(args.quiet)  # the final evaluation's bars as well
     try:
         if args.resume:
             run_dir = Path(args.resume)

@@ -17,9 +17,20 @@ import jax
 import tqdm
 
 
+_QUIET = False  # set_quiet: a command's --quiet, for every bar and line it shows
+
+
+def set_quiet(quiet: bool = True) -> None:
+    """Hides (or shows again) every bar and compiling line of this process: a command's
+    --quiet, which then need not be passed down to each sweep and training run."""
+    global _QUIET  # noqa: PLW0603 (one switch per process, as the terminal is)
+    _QUIET = quiet
+
+
 def shown(quiet: bool = False) -> bool:
-    """Whether progress is displayed: not quiet, process 0, stderr a terminal."""
-    return not quiet and jax.process_index() == 0 and sys.stderr.isatty()
+    """Whether progress is displayed: neither the caller nor the process quiet, process 0,
+    stderr a terminal."""
+    return not (quiet or _QUIET) and jax.process_index() == 0 and sys.stderr.isatty()
 
 
 class Timer:
