@@ -150,7 +150,7 @@ def windows(value, flat: np.ndarray, codes: np.ndarray, known: np.ndarray,
     after = known[voxels].copy()
     order = np.argsort(flat, kind="stable")  # equal voxels keep their order: last = last
     last = np.searchsorted(flat[order], voxels, side="right") - 1
-    written = (last >= 0) & (flat[order][np.maximum(last, 0)] == voxels)
+    written = (last >= 0) & (np.append(flat[order], -1)[last] == voxels)
     after[written] = codes[order][last[written]]
     if np.any(after != OCCUPIED):
         x, y, z = np.unravel_index(voxels[after != OCCUPIED][0], (g, g, g))
