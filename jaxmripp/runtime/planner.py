@@ -223,11 +223,16 @@ class OnboardPlanner(RadioExchange):
         images [(depth (H, W) metres, camera position (3,) metres, rotation (3, 3) camera
         -> world), ...] taken at this pose (all four headings for the take-off scan);
         camera: `DepthCamera`; frame: the `GridFrame` placing the unit cube in metres.
-        Voxels this map holds OCCUPIED stay so (a static world)."""
+        Voxels this map holds OCCUPIED stay so (a static world). windows: as `sense`'s, as
+        (K, 3) voxel coordinates; those whose voxel the images leave unmapped OCCUPIED (a
+        sighting the depth pixels missed) are left out."""
         flat, codes = depth.observe_many(images, camera, frame, self.spec.size)
         keep = ~((codes == FREE) & (self.map.codes[flat] == OCCUPIED))
-        self.sense(position, heading, flat[keep], codes[keep], n_seen, blocked=blocked,
-                   windows=windows)
+        flat, codes = flat[keep], codes[keep]
+        if windows is not None:
+            windows = validation.windows(windows, flat, codes, self.map.codes, self.spec.size,
+                                         drop=True)
+        self.sense(position, heading, flat, codes, n_seen, blocked=blocked, windows=windows)
 
     # -----------------------------------------------------------------------------------
     # Decision

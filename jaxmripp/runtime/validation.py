@@ -129,11 +129,12 @@ def observed(voxels, values, size: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 def windows(value, flat: np.ndarray, codes: np.ndarray, known: np.ndarray,
-            size: int) -> np.ndarray:
+            size: int, drop: bool = False) -> np.ndarray:
     """The window voxels of a `sense` call (None: none; flat indices or (K, 3)
     coordinates) -> flat int64 indices. A window is a building voxel the camera saw: each
     must be OCCUPIED once the call's voxels `flat` / `codes` are written over the map's
-    codes `known` (the last write of a voxel wins, as in the map)."""
+    codes `known` (the last write of a voxel wins, as in the map); with `drop` the others
+    are left out instead of refused."""
     if value is None:
         return np.zeros(0, np.int64)
     g = size
@@ -152,6 +153,8 @@ def windows(value, flat: np.ndarray, codes: np.ndarray, known: np.ndarray,
     last = np.searchsorted(flat[order], voxels, side="right") - 1
     written = (last >= 0) & (np.append(flat[order], -1)[last] == voxels)
     after[written] = codes[order][last[written]]
+    if drop:
+        return voxels[after == OCCUPIED]
     if np.any(after != OCCUPIED):
         x, y, z = np.unravel_index(voxels[after != OCCUPIED][0], (g, g, g))
         raise InvalidPoseError(f"sense: window voxel ({x}, {y}, {z}) is not mapped occupied; "
