@@ -22,7 +22,7 @@ import pytest
 
 from jaxmripp import config as cfgmod, export
 from jaxmripp.runtime import (InvalidPoseError, MessageError, OnboardPlanner, belief, messages,
-                              team_key, view)
+                              team_key, validation, view)
 from jaxmripp.runtime.mapping import OccupancyMap
 from jaxmripp.sim import belief as sim_belief
 from jaxmripp.spec import belief as spec
@@ -303,3 +303,16 @@ def test_sense_refuses_windows_that_are_not_occupied_and_changes_nothing():
     # Coordinates are taken too, and voxels the map already holds OCCUPIED.
     a.sense(a.position, 1, [], np.zeros(0, np.int8), 0, windows=np.array([[10, 11, 3]]))
     assert a.map.window[(10 * G + 11) * G + 3]
+
+
+def test_depth_sightings_the_map_left_unmapped_are_dropped():
+    """`sense_depth`'s windows: only those OCCUPIED once its voxels are written (the last
+    write of a voxel wins) are kept; `sense` refuses the others."""
+    known = np.full(G ** 3, UNKNOWN, np.int8)
+    known[7] = OCCUPIED
+    flat, codes = np.array([5, 9, 5, 12]), np.int8([OCCUPIED, FREE, FREE, OCCUPIED])
+    sightings = np.array([5, 7, 9, 11, 12])
+    kept = validation.windows(sightings, flat, codes, known, G, drop=True)
+    assert kept.tolist() == [7, 12]
+    with pytest.raises(InvalidPoseError, match="not mapped occupied"):
+        validation.windows(sightings, flat, codes, known, G)
