@@ -42,7 +42,7 @@ from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import MODES, OnboardPlanner
-from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS
+from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS, OCCUPIED
 
 KINDS = ("waypoints", "map", "intents")  # the round's three broadcasts
 
@@ -150,6 +150,8 @@ def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -
     world = jax.jit(worldmod.generate, static_argnums=1)(jax.random.key(args.seed), world_cfg)
     height = np.asarray(world.height)
     valid = np.asarray(world.target_valid)
+    target = np.asarray(world.target_voxel)[valid]
+    window_voxels = (target[:, 0] * size + target[:, 1]) * size + target[:, 2]
     cast = jax.jit(jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None)),
                    static_argnums=(3, 4))
 
@@ -182,8 +184,10 @@ def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -
         headings.append(heading.copy())
         start = time.perf_counter()
         for i, planner in enumerate(planners):
+            # The robot's window classifier: the windows among the voxels it saw OCCUPIED.
+            windows = np.intersect1d(window_voxels, voxels[i][values[i] == OCCUPIED])
             planner.sense(position[i], int(heading[i]), voxels[i], values[i],
-                          int(seen[i].sum()), blocked=bool(blocked[i]))
+                          int(seen[i].sum()), blocked=bool(blocked[i]), windows=windows)
         broadcast("waypoints", [planner.message() for planner in planners],
                   lambda i, data: planners[i].receive(data))
         if spec.share_maps:

@@ -78,10 +78,6 @@ def export(cfg: Config, params, out_dir: str | Path, source: dict | None = None
         # intents of lower-id peers before, which the runtime does not implement.
         raise ExportError("policy.claims: the NumPy runtime does not decide in turn; export "
                           "a policy trained with policy.claims=false")
-    if cfg.policy.belief_features:
-        raise ExportError("policy.belief_features: the NumPy runtime does not compute the "
-                          "target belief yet; export a policy trained with "
-                          "policy.belief_features=false")
     weights = policymod.flatten_params(params)
     head = header(cfg, source)
     check_layout(head, weights)

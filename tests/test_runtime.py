@@ -500,15 +500,15 @@ def test_newer_protocol_and_malformed_messages_are_refused_without_side_effects(
     sense_free(a)
     sense_free(b)
     record = json.loads(a.message())
-    assert messages.PROTOCOL_VERSION == 4
-    newer = dict(record, protocol=5)
-    with pytest.raises(ProtocolVersionError, match="protocol 5; this runtime speaks protocol "
-                                                   "4 only .update the runtime on this robot"):
+    assert messages.PROTOCOL_VERSION == 5
+    newer = dict(record, protocol=6)
+    with pytest.raises(ProtocolVersionError, match="protocol 6; this runtime speaks protocol "
+                                                   "5 only .update the runtime on this robot"):
         b.receive(json.dumps(newer).encode())
     # A message of protocol 3 (no seq, no tag) names the robot to update.
     older = {k: v for k, v in record.items() if k != "seq"} | {"protocol": 3}
     with pytest.raises(ProtocolVersionError, match="protocol 3; this runtime speaks protocol "
-                                                   "4 only .update the runtime on robot 0"):
+                                                   "5 only .update the runtime on robot 0"):
         b.receive(json.dumps(older).encode())
     bad = [b"\x00garbage", json.dumps(dict(record, poses=[[0.1, 0.2, float("nan"), 0.0]])),
            json.dumps(dict(record, sender=7)), json.dumps(dict(record, utilities=[])),

@@ -38,7 +38,7 @@ from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner
-from jaxmripp.spec.grid import FREE, N_HEADINGS, UNKNOWN
+from jaxmripp.spec.grid import FREE, N_HEADINGS, OCCUPIED, UNKNOWN
 from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_flight import interval_reference
@@ -107,11 +107,21 @@ def sense_all(sim, state, planners, blocked, t):
              for k in turns]
     position = np.asarray(state.position)
     for i, planner in enumerate(planners):
-        planner.sense(position[i], int(heading[i]),
-                      np.concatenate([c.voxels[i] for c in casts]),
-                      np.concatenate([c.values[i] for c in casts]),
-                      int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]))
+        voxels = np.concatenate([c.voxels[i] for c in casts])
+        values = np.concatenate([c.values[i] for c in casts])
+        planner.sense(position[i], int(heading[i]), voxels, values,
+                      int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]),
+                      windows=classified(state.world, voxels, values))
         assert planner.budget_left == pytest.approx(float(state.budget_left[i]), abs=1e-6)
+
+
+def classified(world, voxels, values):
+    """The window voxels among a camera's observed ones (a classifier that is always
+    right): the world's valid windows whose voxel it saw OCCUPIED."""
+    size = world.height.shape[0]
+    target = np.asarray(world.target_voxel)[np.asarray(world.target_valid)]
+    flat = (target[:, 0] * size + target[:, 1]) * size + target[:, 2]
+    return np.intersect1d(flat, np.asarray(voxels)[np.asarray(values) == OCCUPIED])
 
 
 def share_maps(state, planners, contact, t, traffic=None):

@@ -362,7 +362,7 @@ def test_messages_round_trip_budget_and_intent_exactly():
         poses=F32([[0.1, 0.2, 0.3, math.pi]]), utilities=F32([0.25]),
         budget_left=F32(1 / 3), intent=F32([0.3, 0.2, 1 / 7]))
     back = messages.decode(messages.encode(message))
-    assert back.protocol == messages.PROTOCOL_VERSION == 4
+    assert back.protocol == messages.PROTOCOL_VERSION == 5
     assert back.budget_left == F32(1 / 3) and back.budget_left.dtype == F32
     np.testing.assert_array_equal(back.intent, message.intent)
     hover = messages.decode(messages.encode(dataclasses.replace(message, intent=None)))
@@ -377,9 +377,9 @@ def test_older_version_messages_get_one_clear_error():
     version_1 = {k: v for k, v in record.items() if k not in ("budget_left", "intent", "seq")}
     version_3 = {k: v for k, v in record.items() if k != "seq"}
     for old in (dict(version_1, protocol=1), dict(version_3, protocol=2),
-                dict(version_3, protocol=3)):
+                dict(version_3, protocol=3), dict(record, protocol=4)):
         with pytest.raises(ProtocolVersionError, match=f"uses protocol {old['protocol']}; "
-                           "this runtime speaks protocol 4 only") as err:
+                           "this runtime speaks protocol 5 only") as err:
             messages.decode(json.dumps(old))
         assert "\n" not in str(err.value)
     bad = [dict(record, budget_left=-1.0), dict(record, budget_left="x"),

@@ -6,13 +6,15 @@ Property-based (hypothesis, derandomised: the same cases every run): mutations o
 messages of each kind (bytes flipped, inserted, deleted, truncated; JSON tokens such as
 NaN, huge integers and deep nesting spliced in; one field replaced by any JSON value;
 masks re-packed from truncated or altered zlib streams) and random bytes and text, to a
-receiver with and without the team key. The named cases of the issue come first.
+receiver with and without the team key, and to one with the target belief (whose map
+deltas carry window bits). The named cases of the issue come first.
 """
 
 from __future__ import annotations
 
 import base64
 import copy
+import dataclasses
 import json
 import zlib
 
@@ -32,13 +34,17 @@ FAST = settings(max_examples=200, derandomize=True, database=None, deadline=None
 MANY = settings(FAST, max_examples=5000)
 
 
-def prepared(key):
+def prepared(key, spec=SPEC):
     """Robot 0 with a history, the messages it sends in one round, and robot 1 ready for
-    each reception: `mapping` in the map round, `intents` after its decision."""
-    a, b = (OnboardPlanner(SPEC, i, budget=1.0, team_size=3, team_key=key) for i in range(2))
+    each reception: `mapping` in the map round, `intents` after its decision. With the
+    target belief robot 0 has also mapped a wall with windows, which its delta carries."""
+    a, b = (OnboardPlanner(spec, i, budget=1.0, team_size=3, team_key=key) for i in range(2))
     for k, z in enumerate((0.3, 0.4, 0.5)):  # three visited poses to carry
         sense_free(a, position=(0.5, 0.5, z), n_seen=k)
         a._command = (a.position, a.position)
+    if spec.belief_features:
+        wall = np.arange(5) + (2 * spec.size + 3) * spec.size  # column (2, 3), z 0 .. 4
+        a.sense(a.position, 1, wall, np.full(5, 2, np.int8), 0, windows=wall[[1, 3]])
     sense_free(b, position=(0.5, 0.8, 0.5))
     flat = np.arange(0, SPEC.size ** 3, 3)
     b.sense(b.position, 1, flat, np.where(flat % 7 == 0, 2, 0).astype(np.int8), 0)
@@ -54,7 +60,9 @@ def prepared(key):
     return sent, {"receive": mapping, "receive_map": mapping, "receive_intent": intents}
 
 
-SIDES = {"keyless": prepared(None), "keyed": prepared(KEY)}
+SIDES = {"keyless": prepared(None), "keyed": prepared(KEY),
+         "belief": prepared(None, dataclasses.replace(SPEC, belief_features=True,
+                                                      belief_prior=0.04))}
 KINDS = ("receive", "receive_map", "receive_intent")
 
 
@@ -239,7 +247,8 @@ def mask_mutants(draw, base: bytes) -> str:
     """A map message whose masks come from altered or truncated zlib streams."""
     record = json.loads(base)
     entry = record["deltas"][0]
-    field = draw(st.sampled_from(("voxels", "occupied")))
+    field = draw(st.sampled_from(tuple(k for k in ("voxels", "occupied", "windows")
+                                       if k in entry)))
     raw = zlib.decompress(base64.b64decode(entry[field]))
     if draw(st.booleans()) and raw:
         at = draw(st.integers(0, len(raw) - 1))

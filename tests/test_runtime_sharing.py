@@ -239,9 +239,9 @@ def test_malformed_or_other_version_map_messages_are_refused_and_change_nothing(
         with pytest.raises(MessageError) as err:
             b.receive_map(json.dumps(data))
         assert "\n" not in str(err.value), name
-    for version in (3, 5):
+    for version in (4, 6):
         with pytest.raises(ProtocolVersionError, match=f"protocol {version}; this runtime "
-                                                       "speaks protocol 4 only"):
+                                                       "speaks protocol 5 only"):
             b.receive_map(json.dumps(dict(record, protocol=version)))
     with pytest.raises(MessageError):  # a waypoint message is no map message, and back
         b.receive_map(a.message())

@@ -161,7 +161,7 @@ class PolicyConfig:
     ahead_facade_weight: float = 2.0
     # True: two more inputs, the view's facade weighed by each building's posterior window
     # rate (`view_windows`, `view_windows_per_cost`: jaxmripp.spec.belief), with this prior
-    # strength (pseudo-windows). The JAX side only: such a policy is not exported
+    # strength (pseudo-windows); the NumPy runtime computes them too (jaxmripp.runtime.belief)
     belief_features: bool = False
     belief_strength: float = 3.0
 

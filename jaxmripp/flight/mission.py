@@ -148,8 +148,9 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
                 images, seen, seen_here = _look(scene, i, camera, turns)
                 found_time[seen] = np.minimum(found_time[seen], scene.time)
                 start = time.perf_counter()
+                # The windows in sight name their voxels (what the target belief counts).
                 robot.sense_depth(position[i], int(heading[i]), images, camera, grid,
-                                  len(seen_here))
+                                  len(seen_here), windows=city.window_voxel[seen])
                 sense_ms.append(1e3 * (time.perf_counter() - start))
             decisions = _plan(planners, position, spec, decision_ms)
             if progress is not None:

@@ -16,7 +16,8 @@ same `team_key()`) signs its messages and refuses others (`auth`). See
 for the radio protocol. The planner's parts: `validation` (inputs), `exchange` (its
 broadcasts and receptions), `feeding` (GP feeding, rule in `jaxmripp.spec.feeding`),
 `candidates` (sampling), `observation` (policy inputs, rule in `jaxmripp.spec.layout`),
-`view` (the view gain, `jaxmripp.spec.view`), `depth` (depth images -> map updates, for
+`view` (the view gain, `jaxmripp.spec.view`), `belief` (the target belief,
+`jaxmripp.spec.belief`), `depth` (depth images -> map updates, for
 `sense_depth`), `sharing` (map deltas,
 `jaxmripp.spec.sharing`), `safety` (the filter), `flight` (closest approach and the hold
 rule, `jaxmripp.spec.flight`), `policy` (the network), `gp` and `mapping` (the map, its

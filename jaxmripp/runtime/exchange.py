@@ -86,13 +86,15 @@ class RadioExchange:
     def receive_map(self, data: bytes | str | messages.MapMessage
                     ) -> messages.MapMessage | None:
         """Takes one map message heard this round and merges the delta addressed to this
-        robot, if any; returns the message (None for this robot's own echo)."""
+        robot, if any (with the target belief its window bits too); returns the message
+        (None for this robot's own echo)."""
         self._require_map_round("receive_map")
         if not self._map_sent:
             raise PlannerStateError("receive_map: call map_message() first this round (a "
                                     "robot sends its map as its own sensing left it)")
         message = self._heard(data, messages.MapMessage,
-                              lambda envelope: messages.read_map(envelope, self.spec.size))
+                              lambda envelope: messages.read_map(
+                                  envelope, self.spec.size, self.spec.belief_features))
         if message is None:
             return None
         if message.size != self.spec.size:

@@ -210,13 +210,15 @@ def raise_tops(top: np.ndarray, flat: np.ndarray, values: np.ndarray, size: int)
 
 class OccupancyMap:
     """One robot's (G, G, G) map, stored flat, with its building tops (`jaxmripp.spec.view`,
-    (G, G) int8, 1 + the highest z ever mapped OCCUPIED per column); every voxel starts
-    UNKNOWN, every top 0."""
+    (G, G) int8, 1 + the highest z ever mapped OCCUPIED per column) and its window bits
+    (the OCCUPIED voxels known to be windows, `jaxmripp.spec.belief`); every voxel starts
+    UNKNOWN and no window, every top 0."""
 
     def __init__(self, size: int):
         self.size = size
         self.codes = np.full(size ** 3, UNKNOWN, np.int8)
         self.top = np.zeros((size, size), np.int8)
+        self.window = np.zeros(size ** 3, bool)
 
     @property
     def grid(self) -> np.ndarray:
@@ -250,6 +252,14 @@ class OccupancyMap:
         self.codes[flat[change]] = values[change]
         raise_tops(self.top, flat, values, self.size)
         return flat[change], int(disagree.sum())
+
+    def mark_windows(self, flat: np.ndarray) -> np.ndarray:
+        """Marks voxels `flat` (mapped OCCUPIED: callers check) as windows; returns those
+        that were not marked before. A window stays one (a static world)."""
+        flat = np.unique(np.asarray(flat, np.int64))
+        fresh = flat[~self.window[flat]]
+        self.window[fresh] = True
+        return fresh
 
     def mark_own_voxel(self, position: np.ndarray) -> None:
         """The voxel the robot is in is FREE (it is there; `jaxmripp.spec.flight`)."""

@@ -238,6 +238,9 @@ class MapDelta:
     receiver: int
     voxels: np.ndarray  # (n,) int64 flat voxel indices, increasing
     occupied: np.ndarray  # (n,) bool: OCCUPIED, else FREE
+    # (n,) bool: a known window (OCCUPIED voxels only), or None where the team's export has
+    # no target belief (`jaxmripp.spec.protocol`: the delta then has no windows field)
+    windows: np.ndarray | None = None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -260,25 +263,31 @@ def encode_map(message: MapMessage) -> bytes:
         order = np.argsort(voxels, kind="stable")
         mask = np.zeros(cells, bool)
         mask[voxels] = True
-        deltas.append({
+        occupied = np.asarray(delta.occupied, bool).reshape(-1)[order]
+        entry = {
             "receiver": int(delta.receiver),
             "count": int(len(voxels)),
             "voxels": _pack(mask),
-            "occupied": _pack(np.asarray(delta.occupied, bool).reshape(-1)[order]),
-        })
+            "occupied": _pack(occupied),
+        }
+        if delta.windows is not None:  # one bit per OCCUPIED voxel, in flat order
+            entry["windows"] = _pack(np.asarray(delta.windows, bool).reshape(-1)[order][occupied])
+        deltas.append(entry)
     return _dumps({"type": MAP_MESSAGE_TYPE, "protocol": int(message.protocol),
                    "sender": int(message.sender), "seq": int(message.seq),
                    "size": int(message.size), "deltas": deltas})
 
 
-def decode_map(data: bytes | str, size: int) -> MapMessage:
-    """Parses and validates one map message for a receiver whose map has G = `size`;
+def decode_map(data: bytes | str, size: int, windows: bool = False) -> MapMessage:
+    """Parses and validates one map message for a receiver whose map has G = `size` (and,
+    with `windows`, whose export has the target belief: every delta holds window bits);
     raises MessageError / ProtocolVersionError."""
-    return read_map(parse(data, MAP_MESSAGE_TYPE), size)
+    return read_map(parse(data, MAP_MESSAGE_TYPE), size, windows)
 
 
-def read_map(envelope: Envelope, size: int) -> MapMessage:
-    """The map message in a parsed envelope, its fields checked against G = `size`."""
+def read_map(envelope: Envelope, size: int, windows: bool = False) -> MapMessage:
+    """The map message in a parsed envelope, its fields checked against G = `size` and
+    whether the receiver reads window bits (`windows`, `jaxmripp.spec.protocol`)."""
     record, sender = envelope.record, envelope.sender
     where = f"map message from robot {sender}"
     if not _is_int(record.get("size")) or record.get("size") != size:
@@ -303,8 +312,25 @@ def read_map(envelope: Envelope, size: int) -> MapMessage:
             raise MessageError(f"{name}: the mask holds {len(voxels)} voxels, count says "
                                f"{count}")
         occupied = _unpack(entry.get("occupied"), count, f"{name}: occupied")
-        deltas.append(MapDelta(receiver, voxels.astype(np.int64), occupied))
+        deltas.append(MapDelta(receiver, voxels.astype(np.int64), occupied,
+                               _windows(entry, occupied, windows, name)))
     return MapMessage(sender, size, tuple(deltas), record["protocol"], envelope.seq)
+
+
+def _windows(entry: dict, occupied: np.ndarray, expected: bool, name: str
+             ) -> np.ndarray | None:
+    """A delta's window bits over its voxels (n,) bool, or None for a receiver without the
+    target belief; the field must be present exactly when the receiver reads it."""
+    if ("windows" in entry) != expected:
+        held = "holds" if "windows" in entry else "has no"
+        wanted = "reads them" if expected else "has no target belief"
+        raise MessageError(f"{name} {held} window bits; this robot's export {wanted} "
+                           "(policy.belief_features; a team flies one export)")
+    if not expected:
+        return None
+    bits = np.zeros(len(occupied), bool)
+    bits[occupied] = _unpack(entry["windows"], int(occupied.sum()), f"{name}: windows")
+    return bits
 
 
 def _pack(bits: np.ndarray) -> str:

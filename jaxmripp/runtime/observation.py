@@ -16,8 +16,9 @@ from jaxmripp.runtime import view
 from jaxmripp.runtime.candidates import Candidates
 from jaxmripp.runtime.gp import GaussianProcess
 from jaxmripp.runtime.mapping import OccupancyMap
+from jaxmripp.spec import layout
 from jaxmripp.spec.grid import HEADING_ANGLES, N_HEADINGS
-from jaxmripp.spec.layout import FEATURES, ROBOT_STATE
+from jaxmripp.spec.layout import ROBOT_STATE
 
 F32 = np.float32
 BUDGET_FLOOR = 1e-6  # the env's guard against dividing by a zero initial budget
@@ -30,8 +31,10 @@ def _fraction_of(budget_initial) -> F32:
 def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_initial,
                        max_distance: float, utility_gp: GaussianProcess,
                        comm_gp: GaussianProcess, occupancy: OccupancyMap, heard: np.ndarray,
-                       gain: view.GainModel) -> np.ndarray:
-    """(L, F) float32 per-candidate features, columns in FEATURES order.
+                       gain: view.GainModel, rates: np.ndarray | None = None) -> np.ndarray:
+    """(L, F) float32 per-candidate features, columns in FEATURES order, then with the
+    robot's facade rates `rates` (G, G) (`jaxmripp.runtime.belief.facade_rates`) the
+    BELIEF_FEATURES.
 
     max_distance: the shell's outer radius, so dx, dy, dz lie in [-1, 1]; the GP columns
     are the posterior mean and the square root of the latent variance at each pose; the
@@ -42,8 +45,10 @@ def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_
     u_mean, u_var = utility_gp.predict(poses)
     c_mean, c_var = comm_gp.predict(poses)
     budget = _fraction_of(budget_initial)
-    unknown, facade = view.view_gain(occupancy.codes, occupancy.top, c.position, c.heading,
-                                     gain, occupancy.size)
+    unknown, facade, *windows = view.view_gain(occupancy.codes, occupancy.top, c.position,
+                                               c.heading, gain, occupancy.size, rates=rates)
+    belief = [] if rates is None else [
+        windows[0][:, None], view.per_cost(windows[0], c.cost, max_distance)[:, None]]
     features = np.concatenate([
         (c.position - position) / F32(max_distance),
         c.position,
@@ -56,8 +61,10 @@ def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_
         view.per_cost(unknown, c.cost, max_distance)[:, None],
         view.per_cost(facade, c.cost, max_distance)[:, None],
         view.peer_distance(c.position, heard, max_distance)[:, None],
+        *belief,
     ], axis=1).astype(F32)
-    assert features.shape[1] == len(FEATURES)  # a column added here must be added to the spec
+    # A column added here must be added to the spec.
+    assert features.shape[1] == len(layout.features(belief=rates is not None))
     return features
 
 

@@ -21,12 +21,13 @@ the way (n_seen: the windows seen at the start heading); it is charged `SCAN_TUR
 (`jaxmripp.spec.sharing`), `map_message` sends every robot heard this round the voxels of
 this robot's map it may lack (`sharing`; the size in bytes is kept in
 `last_map_message_bytes`) and `receive_map` merges the delta addressed to this robot, so
-that its map is the one the env's merge gives; a robot that heard nobody may skip both.
+that its map is the one the env's merge gives (with the target belief, the windows known,
+which `sense` takes from the robot's classifier, travel as bits of the deltas); a robot that heard nobody may skip both.
 `decide` feeds the GPs (the rule of `jaxmripp.spec.feeding`, in `feeding`), draws candidate
 poses (`candidates`) or takes ones supplied by the caller, builds the policy's inputs on the
 merged map (the rule of `jaxmripp.spec.layout`, in `observation`, with the view gain of
-`jaxmripp.spec.view`, in `view`, and the lookahead input, in `lookahead`, where the policy
-has it) and picks the next pose with the exported policy or the greedy rule of
+`jaxmripp.spec.view`, in `view`, the target belief of `jaxmripp.spec.belief`, in `belief`,
+and the lookahead input, in `lookahead`, where the policy has them) and picks the next pose with the exported policy or the greedy rule of
 `jaxmripp.evaluation.baselines.greedy_planner`. `resolve` applies the intent rule of
 `jaxmripp.spec.flight` (with `safety.intents`): if the chosen flight comes within d_c of the
 flight announced by a higher-priority robot heard (`safety.priority`), the robot holds -- it
@@ -57,7 +58,8 @@ from typing import Any
 import numpy as np
 
 from jaxmripp.runtime import candidates as cands
-from jaxmripp.runtime import depth, flight, lookahead, observation, safety, validation
+from jaxmripp.runtime import belief, depth, flight, lookahead, observation, safety, validation
+from jaxmripp.runtime.decision import Decision
 from jaxmripp.runtime.errors import PlannerStateError
 from jaxmripp.runtime.exchange import RadioExchange
 from jaxmripp.runtime.feeding import FeedSchedule
@@ -75,26 +77,6 @@ from jaxmripp.spec.layout import FEATURES
 F32 = np.float32
 COL = {name: i for i, name in enumerate(FEATURES)}
 MODES = validation.MODES
-
-
-@dataclasses.dataclass(frozen=True)
-class Decision:
-    """The outcome of one `decide` (or `resolve`) call."""
-
-    pose: np.ndarray  # (4,) float32 next waypoint (x, y, z, heading angle); current if hover
-    position: np.ndarray  # (3,) float32
-    heading: int  # heading index of `pose`
-    index: int  # chosen candidate, -1 when hovering
-    hover: bool
-    reason: str  # the mode that chose (one of MODES), or why it hovers
-    mode: str
-    scores: np.ndarray  # (L,) policy logits (infeasible floored) or greedy scores
-    mask: np.ndarray  # (L,) bool candidates the rule could pick (offered, safe, in sector)
-    safe: np.ndarray  # (L,) bool passed the safety filter
-    features: np.ndarray  # (L, F) inputs, layout FEATURES (+ the lookahead input in policy mode)
-    robot_state: np.ndarray  # (S,) policy input, layout ROBOT_STATE
-    candidates: cands.Candidates
-    yields_to: int | None = None  # a hold (`resolve`): the robot whose flight goes first
 
 
 class OnboardPlanner(RadioExchange):
@@ -150,7 +132,7 @@ class OnboardPlanner(RadioExchange):
         self.rng = np.random.default_rng(self.id if seed is None else seed)
 
         self.map = OccupancyMap(spec.size)
-        self.sharing = MapSharing(self.id, self.map)
+        self.sharing = MapSharing(self.id, self.map, windows=spec.belief_features)
         self._init_radio(team_key)
         self.utility_gp = GaussianProcess(spec.gp)
         self.comm_gp = GaussianProcess(spec.gp)
@@ -185,8 +167,8 @@ class OnboardPlanner(RadioExchange):
     # -----------------------------------------------------------------------------------
     # Inputs
 
-    def sense(self, position, heading, voxels, values, n_seen: int, blocked: bool = False
-              ) -> None:
+    def sense(self, position, heading, voxels, values, n_seen: int, blocked: bool = False,
+              windows=None) -> None:
         """Where the robot is now and what its camera saw from there.
 
         position (3,) in the unit cube and heading index 0..3 (+x, +y, -x, -y): the pose
@@ -197,12 +179,15 @@ class OnboardPlanner(RadioExchange):
         `spec.takeoff_scan` the first call is the take-off scan (voxels seen at all four
         headings; charged SCAN_TURNS turns). blocked: the last move was stopped by an
         obstacle; the voxel ahead of the stop on the commanded segment is then mapped
-        occupied.
+        occupied. windows: the voxels among these that the robot's classifier reports as
+        windows, as flat indices or (K, 3) coordinates (each mapped OCCUPIED once the call
+        is done); they are what the target belief counts (`belief`).
         """
         position = validation.position(position, "sense: position")
         heading = validation.heading(heading, "sense: heading")
         flat, codes = validation.observed(voxels, values, self.spec.size)
         n_seen = validation.n_seen(n_seen)
+        windows = validation.windows(windows, flat, codes, self.map.codes, self.spec.size)
 
         first = self.position is None
         moved = first or self._command is not None  # a hover or a hold is not a visit
@@ -221,6 +206,7 @@ class OnboardPlanner(RadioExchange):
                         self.map.mark_occupied(voxel)
         self.position, self.heading = position, heading
         self.map.update(flat, codes)
+        self.map.mark_windows(windows)
         self.map.mark_own_voxel(position)
         self.sharing.note_sensed(self.step)
         if moved:
@@ -232,15 +218,21 @@ class OnboardPlanner(RadioExchange):
         self.contacts = {}  # positions heard are good for this round only
 
     def sense_depth(self, position, heading, images, camera, frame, n_seen: int,
-                    blocked: bool = False) -> None:
+                    blocked: bool = False, windows=None) -> None:
         """`sense` from depth images instead of voxel lists (`jaxmripp.runtime.depth`):
         images [(depth (H, W) metres, camera position (3,) metres, rotation (3, 3) camera
         -> world), ...] taken at this pose (all four headings for the take-off scan);
         camera: `DepthCamera`; frame: the `GridFrame` placing the unit cube in metres.
-        Voxels this map holds OCCUPIED stay so (a static world)."""
+        Voxels this map holds OCCUPIED stay so (a static world). windows: as `sense`'s, as
+        (K, 3) voxel coordinates; those whose voxel the images leave unmapped OCCUPIED (a
+        sighting the depth pixels missed) are left out."""
         flat, codes = depth.observe_many(images, camera, frame, self.spec.size)
         keep = ~((codes == FREE) & (self.map.codes[flat] == OCCUPIED))
-        self.sense(position, heading, flat[keep], codes[keep], n_seen, blocked=blocked)
+        flat, codes = flat[keep], codes[keep]
+        if windows is not None:
+            windows = validation.windows(windows, flat, codes, self.map.codes, self.spec.size,
+                                         drop=True)
+        self.sense(position, heading, flat, codes, n_seen, blocked=blocked, windows=windows)
 
     # -----------------------------------------------------------------------------------
     # Decision
@@ -327,9 +319,11 @@ class OnboardPlanner(RadioExchange):
         default the robot's generator's next ones."""
         self._require_sensed("observe")
         heard = self._known_robots()
+        rates = None if not self.spec.belief_features else belief.facade_rates(
+            self.map, self.spec.belief_strength, self.spec.belief_prior, self.spec.gain_facade)
         features = observation.candidate_features(
             c, self.position, self.budget_left, self.budget_initial, self.spec.shell[1],
-            self.utility_gp, self.comm_gp, self.map, heard, self.spec.gain)
+            self.utility_gp, self.comm_gp, self.map, heard, self.spec.gain, rates)
         if self.spec.ahead_branches and ahead:
             if ahead_uniforms is None:
                 ahead_uniforms = self.rng.random(lookahead.draw_shape(self.spec), F32)

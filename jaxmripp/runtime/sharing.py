@@ -11,6 +11,10 @@ it, and maps only grow, so it holds it still; without this a pair in steady cont
 send every voxel back to the robot that just sent it, about doubling the traffic. The
 receiver ends with the same map as the spec's (the environment's) merge either way.
 
+With the target belief (`windows`) a voxel's window bit travels with it (the delta's
+window bits, `jaxmripp.spec.protocol`), and a bit learned after its voxel counts as
+learning the voxel again, so the voxel goes out once more with its bit.
+
 Links are taken to be symmetric, as the environment's are: a robot that hears a peer
 assumes the peer hears its map message. Where a message is lost, the voxels it carried
 reach that peer only once relearned or forwarded by another robot.
@@ -29,10 +33,12 @@ OWN = -1  # `source` of a voxel the robot sensed itself
 class MapSharing:
     """One robot's bookkeeping of what it learned when, over its `OccupancyMap`."""
 
-    def __init__(self, robot_id: int, occupancy: OccupancyMap):
+    def __init__(self, robot_id: int, occupancy: OccupancyMap, windows: bool = False):
+        """windows: the deltas carry window bits (an export with the target belief)."""
         cells = occupancy.size ** 3
         self.id = int(robot_id)
         self.map = occupancy
+        self.windows = bool(windows)
         self.learned = np.full(cells, -1, np.int32)  # round the voxel's code was last set
         self.source = np.full(cells, OWN, np.int32)  # the peer it came from, or OWN
         self.last_sent: dict[int, int] = {}  # peer -> round of the last map message to it
@@ -40,14 +46,20 @@ class MapSharing:
         # while every map is true to the world, as in the simulator.
         self.conflicts = 0
         self._noted = occupancy.codes.copy()  # codes as of the last bookkeeping
+        self._noted_windows = occupancy.window.copy()  # window bits, likewise
 
     def note_sensed(self, round_: int) -> None:
-        """Records every voxel whose code changed since the last call as sensed this
-        round (the map was written by the robot's own camera or a blocked move)."""
-        changed = np.flatnonzero(self.map.codes != self._noted)
+        """Records every voxel whose code (or, with `windows`, window bit) changed since
+        the last call as sensed this round (the map was written by the robot's own camera
+        or a blocked move)."""
+        changed = self.map.codes != self._noted
+        if self.windows:
+            changed |= self.map.window != self._noted_windows
+        changed = np.flatnonzero(changed)
         self.learned[changed] = round_
         self.source[changed] = OWN
         self._noted[changed] = self.map.codes[changed]
+        self._noted_windows[changed] = self.map.window[changed]
 
     def delta(self, peer: int) -> np.ndarray:
         """Flat indices (increasing) of the known voxels `peer` may lack."""
@@ -64,16 +76,23 @@ class MapSharing:
         deltas = []
         for peer in sorted(set(int(r) for r in receivers) - {self.id}):
             voxels = self.delta(peer)
-            deltas.append(MapDelta(peer, voxels, self.map.codes[voxels] == OCCUPIED))
+            deltas.append(MapDelta(peer, voxels, self.map.codes[voxels] == OCCUPIED,
+                                   self.map.window[voxels] if self.windows else None))
         for delta in deltas:
             self.last_sent[delta.receiver] = round_
         return MapMessage(self.id, self.map.size, tuple(deltas))
 
     def merge(self, delta: MapDelta, sender: int, round_: int) -> int:
-        """Merges a delta from `sender` (`OccupancyMap.merge`: OCCUPIED is never freed);
-        returns the number of voxels whose code it changed."""
+        """Merges a delta from `sender` (`OccupancyMap.merge`: OCCUPIED is never freed, and
+        with `windows` its window bits, which mark OCCUPIED voxels only); returns the
+        number of voxels whose code or window bit it changed."""
         values = np.where(delta.occupied, OCCUPIED, FREE).astype(np.int8)
         fresh, disagreed = self.map.merge(delta.voxels, values)
+        if self.windows and delta.windows is not None:
+            # The sender's OCCUPIED voxels are OCCUPIED here after the merge.
+            marked = self.map.mark_windows(delta.voxels[delta.windows & delta.occupied])
+            fresh = np.union1d(fresh, marked)
+            self._noted_windows[fresh] = self.map.window[fresh]
         self.conflicts += disagreed
         self.learned[fresh] = round_
         self.source[fresh] = int(sender)

@@ -76,6 +76,11 @@ class RuntimeSpec:
     gain_facade: str = "nearby"
     sector_split: str = "angle"  # radio.sector_split (jaxmripp.spec.sectors)
     sector_count: int = 0  # radio.sector_count (jaxmripp.spec.sectors)
+    # The target belief (jaxmripp.spec.belief): whether the policy reads its columns, the
+    # prior strength k (policy.belief_strength) and the prior rate m of the trained world.
+    belief_features: bool = False
+    belief_strength: float = 3.0
+    belief_prior: float = 0.0
 
     @property
     def gain(self) -> GainModel:
@@ -90,7 +95,7 @@ class RuntimeSpec:
     @property
     def features(self) -> tuple[str, ...]:
         """The policy's input columns (`jaxmripp.spec.layout.features`)."""
-        return features(self.ahead_branches > 0)
+        return features(self.ahead_branches > 0, self.belief_features)
 
     @classmethod
     def from_header(cls, header: Mapping[str, Any]) -> "RuntimeSpec":
@@ -130,11 +135,20 @@ class RuntimeSpec:
             raise WeightsFormatError("export header: missing field config.radio.share_maps "
                                      "(exported before map sharing, protocol 3; re-export "
                                      "the policy)")
-        ahead = {}
+        ahead: dict[str, Any] = {}  # the optional sections' fields
         if "ahead" in config:  # exports without the lookahead input may lack the section
             ahead = dict(ahead_branches=get("ahead", "branches", int),
                          ahead_discount=get("ahead", "discount", float),
                          ahead_facade_weight=get("ahead", "facade_weight", float))
+        if "belief" in config:  # exports from before the belief input lack the section
+            ahead.update(belief_features=get("belief", "features", bool),
+                         belief_strength=get("belief", "strength", float),
+                         belief_prior=get("belief", "prior", float))
+            for key in ("strength", "prior") if ahead["belief_features"] else ():
+                if not 0 < ahead[f"belief_{key}"] < math.inf:
+                    raise WeightsFormatError(f"export header: config.belief.{key} is "
+                                             f"{ahead[f'belief_{key}']}; allowed: a finite "
+                                             "number > 0")
         return cls(
             size=get("world", "size", int),
             positions=get("candidates", "positions", int),

@@ -128,6 +128,40 @@ def observed(voxels, values, size: int) -> tuple[np.ndarray, np.ndarray]:
     return voxels[seen].astype(np.int64), codes.astype(np.int8)
 
 
+def windows(value, flat: np.ndarray, codes: np.ndarray, known: np.ndarray,
+            size: int, drop: bool = False) -> np.ndarray:
+    """The window voxels of a `sense` call (None: none; flat indices or (K, 3)
+    coordinates) -> flat int64 indices. A window is a building voxel the camera saw: each
+    must be OCCUPIED once the call's voxels `flat` / `codes` are written over the map's
+    codes `known` (the last write of a voxel wins, as in the map); with `drop` the others
+    are left out instead of refused."""
+    if value is None:
+        return np.zeros(0, np.int64)
+    g = size
+    voxels = np.asarray(value)
+    if voxels.ndim == 2 and voxels.shape[1] == 3:
+        if not np.issubdtype(voxels.dtype, np.integer) or np.any((voxels < 0) | (voxels >= g)):
+            raise InvalidPoseError(f"sense: window coordinates must be integers in 0..{g - 1}")
+        voxels = (voxels[:, 0] * g + voxels[:, 1]) * g + voxels[:, 2]
+    if voxels.ndim != 1 or (voxels.size and (not np.issubdtype(voxels.dtype, np.integer)
+                                             or voxels.min() < 0 or voxels.max() >= g ** 3)):
+        raise InvalidPoseError(f"sense: windows must be a 1-D array of flat voxel indices in "
+                               f"0..{g ** 3 - 1} (or (K, 3) coordinates)")
+    voxels = voxels.astype(np.int64)
+    after = known[voxels].copy()
+    order = np.argsort(flat, kind="stable")  # equal voxels keep their order: last = last
+    last = np.searchsorted(flat[order], voxels, side="right") - 1
+    written = (last >= 0) & (np.append(flat[order], -1)[last] == voxels)
+    after[written] = codes[order][last[written]]
+    if drop:
+        return voxels[after == OCCUPIED]
+    if np.any(after != OCCUPIED):
+        x, y, z = np.unravel_index(voxels[after != OCCUPIED][0], (g, g, g))
+        raise InvalidPoseError(f"sense: window voxel ({x}, {y}, {z}) is not mapped occupied; "
+                               "a window must be a building voxel seen OCCUPIED")
+    return voxels
+
+
 def external(candidates) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Caller-supplied candidates (any object with .position, .heading, optional .valid)
     -> (position (L, 3) float32, heading (L,) int32, valid (L,) bool)."""

@@ -20,6 +20,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, PaddedMaps, voxel_of
+from jaxmripp.spec import belief as belief_spec
 from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
 
@@ -60,6 +61,7 @@ class GainTable(NamedTuple):
     xyz: np.ndarray  # (3, 4, R, S) the samples' x, y and z offsets
     weights: np.ndarray  # (R * S,) float32, the spec's per-sample weights, ray-major
     scale: np.float32  # 1 / the weights' total, as XLA multiplies by it (module docstring)
+    total: int  # the weights' total over all rays of a heading
 
 
 @functools.lru_cache(maxsize=8)
@@ -69,10 +71,11 @@ def gain_table(fov_deg: float, sensor_range: float, size: int) -> GainTable:
     side = size + 2 * margin
     offsets = offsets.astype(np.int64)
     column = offsets[..., 0] * side + offsets[..., 1]
-    total = F32(offsets.shape[1] * int(weights.sum()))
+    total = offsets.shape[1] * int(weights.sum())
     return GainTable(margin, column * side + offsets[..., 2], column,
                      np.moveaxis(offsets, -1, 0),
-                     np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / total)
+                     np.tile(np.asarray(weights, F32), offsets.shape[1]), F32(1) / F32(total),
+                     total)
 
 
 def padded(codes: np.ndarray | PaddedMaps, table: GainTable, size: int) -> PaddedMaps:
@@ -91,7 +94,8 @@ def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarr
     in the padded maps (map b at b side^3 onwards), which of them are unknown and which
     facade (both (P, R, S) bool), the maps and the table. `codes`: (G^3,), or (B, G^3) (or
     their `PaddedMaps`) with `rows` (...) the map each pose looks into (default: poses
-    (B, L, 3) / (B, L), pose (b, l) in map b)."""
+    (B, L, 3) / (B, L), pose (b, l) in map b). Last, each sample's column (P, R, S) in the
+    padded (side, side) ground."""
     table = gain_table(model.fov_deg, model.sensor_range, size)
     maps = padded(codes, table, size)
     margin, side = table.margin, maps.side
@@ -127,25 +131,43 @@ def _samples(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarr
     clear = np.ones_like(stops)
     clear[..., 1:] = ~np.logical_or.accumulate(stops, axis=-1)[..., :-1]
     unknown = clear & (code == UNKNOWN)
-    near = near.reshape(-1)[camera_column[:, None, None] + table.column[heading]]
+    columns = camera_column[:, None, None] + table.column[heading]
+    near = near.reshape(-1)[columns]
     facade = unknown & (near > 0) & (z <= near)
-    return index, unknown, facade, maps, table
+    return index, unknown, facade, maps, table, columns
 
 
 def view_gain(codes: np.ndarray | PaddedMaps, top: np.ndarray, position: np.ndarray,
               heading: np.ndarray, model: GainModel, size: int,
-              rows: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+              rows: np.ndarray | None = None, rates: np.ndarray | None = None
+              ) -> tuple[np.ndarray, ...]:
     """A map's flat (G^3,) codes and (G, G) tops, poses (L, 3) / (L,) -> (view_unknown,
     view_facade), each (L,) float32; with B maps' codes (B, G^3) or `PaddedMaps` (sharing
     the tops), poses (B, L, 3) / (B, L) -> each (B, L), pose (b, l) seen in map b, or poses
-    (L, 3) / (L,) with `rows` (L,) -> each (L,), pose l seen in map rows[l]."""
-    _, unknown, facade, _, table = _samples(codes, top, position, heading, model, size, rows)
+    (L, 3) / (L,) with `rows` (L,) -> each (L,), pose l seen in map rows[l]. With the
+    robot's quantised facade rates (G, G) int (`jaxmripp.runtime.belief.facade_rates`)
+    also view_windows (`jaxmripp.spec.belief`): each facade sample's weight times its
+    column's rate, over RATE_SCALE times the weights' total."""
+    _, unknown, facade, _, table, columns = _samples(codes, top, position, heading, model,
+                                                     size, rows)
     # Weighted counts as one float32 product each: integers far below 2^24, so exact.
     unknown_sum = unknown.reshape(-1, table.weights.size).astype(F32) @ table.weights
     facade_sum = facade.reshape(-1, table.weights.size).astype(F32) @ table.weights
     shape = np.shape(heading)
-    return ((unknown_sum * table.scale).reshape(shape),
-            (facade_sum * table.scale).reshape(shape))
+    gains = ((unknown_sum * table.scale).reshape(shape),
+             (facade_sum * table.scale).reshape(shape))
+    if rates is None:
+        return gains
+    side = size + 2 * table.margin
+    inner = slice(table.margin, table.margin + size)
+    padded_rates = np.zeros((side, side), np.int64)  # samples beyond the grid are OCCUPIED
+    padded_rates[inner, inner] = rates
+    # Integer sums up to 2^31 (the JAX side's int32), exact in int64; then the same float32
+    # conversion and product by the float32 reciprocal as there.
+    rated = np.where(facade, padded_rates.reshape(-1)[columns], 0).reshape(
+        -1, table.weights.size) @ table.weights.astype(np.int64)
+    scale = F32(1) / F32(table.total * belief_spec.RATE_SCALE)
+    return gains + ((rated.astype(F32) * scale).reshape(shape),)
 
 
 def after_views(codes: np.ndarray, top: np.ndarray, position: np.ndarray, heading: np.ndarray,
@@ -153,7 +175,7 @@ def after_views(codes: np.ndarray, top: np.ndarray, position: np.ndarray, headin
     """A map's flat (G^3,) codes, poses (B, 3) / (B,) -> B padded copies of the map (for
     `view_gain` and `known_free`): copy b with the unknown voxels pose b sees counted as
     FREE, the part of the map it would reveal (`jaxmripp.sim.view.unknown_in_view`)."""
-    index, unknown, _, one, _ = _samples(codes, top, position, heading, model, size)
+    index, unknown, _, one, *_ = _samples(codes, top, position, heading, model, size)
     after = np.repeat(one.codes, len(index), axis=0)
     copy = np.broadcast_to(np.arange(len(index))[:, None, None], index.shape)
     after.reshape(-1)[copy[unknown] * after.shape[1] + index[unknown]] = FREE

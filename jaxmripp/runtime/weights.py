@@ -9,14 +9,17 @@ policy.json
     format_version    FORMAT_VERSION; a reader refuses any other version
     layout            {"features": [...], "robot_state": [...]}: the column order of the
                       policy's inputs, which must equal this runtime's
-                      `features(ahead)` (FEATURES, with the lookahead input when
+                      `features(ahead, belief)` (FEATURES, with the belief input when
+                      config.belief.features, then the lookahead input when
                       config.ahead.branches > 0) / ROBOT_STATE
     config            the values the onboard planner needs (see `RuntimeSpec.from_header`):
                       world.size, sensor.*, candidates.*, robots.*, radio.*, safety.* (escape
                       may be absent: off),
                       gp.*, reward.utility_norm, episode.max_steps, ahead.* (the
                       lookahead input of `jaxmripp.spec.layout`: branches, discount,
-                      facade_weight; absent: none); infinities are the
+                      facade_weight; absent: none), belief.* (the target belief of
+                      `jaxmripp.spec.belief`: features, strength and the trained world's
+                      prior rate m; written with the belief input only); infinities are the
                       string "inf". The runtime flies safety.flight "known_free" only,
                       needs radio.share_maps (whether robots exchange maps) and takes
                       radio.map_reach "radio" only (absent: radio).
@@ -47,6 +50,7 @@ import numpy as np
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.spec import GPSpec, RuntimeSpec, header_field  # noqa: F401
+from jaxmripp.spec import belief
 from jaxmripp.spec.layout import ROBOT_STATE, features
 
 FORMAT = "jaxmripp-policy"
@@ -58,7 +62,7 @@ HEADER_FILE = "policy.json"
 def config_header(cfg) -> dict[str, Any]:
     """The header's `config` block from a `jaxmripp.config.Config` (read by attribute, so
     this module needs no import of it)."""
-    return jsonable({
+    head = {
         "world": {"size": cfg.world.size},
         "sensor": dataclasses.asdict(cfg.sensor),
         "candidates": dataclasses.asdict(cfg.candidates),
@@ -74,7 +78,16 @@ def config_header(cfg) -> dict[str, Any]:
         "ahead": {"branches": cfg.policy.ahead_branches,
                   "discount": cfg.policy.ahead_discount,
                   "facade_weight": cfg.policy.ahead_facade_weight},
-    })
+    }
+    if cfg.policy.belief_features:  # absent: no belief input (as exports before it)
+        world = cfg.world
+        head["belief"] = {"features": True, "strength": cfg.policy.belief_strength,
+                          "prior": belief.prior_rate(
+                              world.size, world.n_buildings, world.footprint,
+                              world.footprint_min, world.height_range,
+                              (world.target_min, world.target_capacity),
+                              world.target_placement)}
+    return jsonable(head)
 
 
 def header(cfg, policy_config: Mapping[str, Any], source: Mapping | None = None) -> dict:
@@ -82,7 +95,8 @@ def header(cfg, policy_config: Mapping[str, Any], source: Mapping | None = None)
     return {
         "format": FORMAT,
         "format_version": FORMAT_VERSION,
-        "layout": {"features": list(features(cfg.policy.ahead_branches > 0)),
+        "layout": {"features": list(features(cfg.policy.ahead_branches > 0,
+                                             cfg.policy.belief_features)),
                    "robot_state": list(ROBOT_STATE)},
         "config": config_header(cfg),
         "policy": dict(policy_config),

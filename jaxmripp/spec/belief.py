@@ -6,14 +6,16 @@ city's windows (`jaxmripp.sim.world`), so what a team has already found on a bui
 says how much is left there. This rule turns a robot's map into a posterior rate of
 windows per unseen facade voxel for every building it knows, and weighs the facade a pose
 would see by it. The JAX side is `jaxmripp.sim.belief` (with the gain of
-`jaxmripp.sim.view`); the rule below is what an onboard implementation follows.
+`jaxmripp.sim.view`), the onboard one `jaxmripp.runtime.belief` (with the gain of
+`jaxmripp.runtime.view`); the rule below is what both follow.
 
 What the rule reads: the robot's map (with `radio.share_maps` what it and the robots it
 heard have seen), its building tops (`jaxmripp.spec.view`) and the windows it knows: the
 mapped voxels that its classifier, or a peer's, reported as windows. Each window is a
 building voxel, so a window is known exactly when its voxel is mapped (the simulator
-takes the flag from the world's window list wherever the voxel is mapped; a runtime
-would carry it as one more bit per mapped voxel, merged with the map).
+takes the flag from the world's window list wherever the voxel is mapped; the runtime
+keeps it as one more bit per OCCUPIED voxel, set from its classifier's reports and merged
+with the map: the map deltas carry it, `jaxmripp.spec.protocol`).
 
 Buildings
     A *known building column* is a column whose top is > 0. Known building columns that

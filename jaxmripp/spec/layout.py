@@ -48,7 +48,8 @@ BELIEF INPUT (`policy.belief_features`): two more columns after FEATURES (before
 lookahead input), `view_windows` and `view_windows_per_cost` (`features(belief=True)`):
 the facade gain weighed by the robot's target belief, with prior strength
 `policy.belief_strength` (the rule is written in `jaxmripp.spec.belief`). The NumPy
-runtime does not compute them yet: such a policy is not exported.
+runtime computes them from the windows its robot's classifier reports and those that
+arrive with the map deltas (`jaxmripp.runtime.belief`).
 
 DECIDING IN TURN (`policy.claims`): robots choose in index order, and robot i's four VIEW
 columns are computed on its map with the unknown samples in view of the chosen poses of

@@ -37,6 +37,18 @@ it and ignores the others. A receiver refuses, changing nothing, a record whose 
 not decode to exactly those lengths, whose padding bits are set, whose count disagrees
 with the mask, or whose receivers repeat.
 
+Windows (an export with the target belief, `policy.belief_features`; the rule is
+`jaxmripp.spec.belief`). Each delta then also holds
+    "windows": W
+one bit per OCCUPIED voxel of the delta (the set bits of `occupied`, in increasing flat
+index), set when the sender knows that voxel to be a window -- its own classifier's or a
+peer's report, merged with the map as the voxel's code is. W is packed, compressed and
+written as the masks above. A voxel whose window bit the sender learned after sending
+the voxel itself travels again in the next delta, so the windows a receiver knows are
+those of the map it merged. A receiver whose export has the belief refuses a delta
+without the field, one whose export has none refuses a delta with it (a team flies one
+export), and a mask of another length or with padding bits set is refused as above.
+
 Numbers, for every type: integers are written with at most MAX_INT_DIGITS digits; NaN,
 Infinity and decimals beyond the double range are refused, and so is any float field
 whose value is not a finite float32.
@@ -59,10 +71,11 @@ key reads tag and seq but checks neither. `jaxmripp.runtime.auth` signs and veri
 
 Every message carries the version; a receiver refuses any other version, whatever the
 type. Version history: 1 -- waypoints and position; 2 -- adds budget_left and intent;
-3 -- adds the map message; 4 -- adds seq and the tag of a team with a key.
+3 -- adds the map message; 4 -- adds seq and the tag of a team with a key; 5 -- adds the
+window bits of the map deltas (with the target belief).
 """
 
-PROTOCOL_VERSION = 4
+PROTOCOL_VERSION = 5
 MESSAGE_TYPE = "jaxmripp.waypoints"
 MAP_MESSAGE_TYPE = "jaxmripp.map"
 MAX_BYTES = 1 << 20  # a history of thousands of poses, or a whole map at G = 100, fits
