@@ -229,6 +229,7 @@ def test_reset_and_step_are_traced_once(fns, rollout):
     assert fns.traced.reset._cache_size() == 1
 
 
+@pytest.mark.slow
 def test_auto_reset_restarts_finished_envs_within_the_slot_limit(fns, rollout):
     """Envs 0 and 2 of three are finished; with one restart slot per step env 0 restarts
     now (an exact copy of the first pool entry), env 2 waits a step and then takes the

@@ -188,6 +188,7 @@ def _cli():
     return cli
 
 
+@pytest.mark.slow
 def test_cli_on_two_devices_reproduces_the_sweep(tiny_sweep, tmp_path):
     """eval.py on one shape of the sweep, its episodes split over 2 devices (a padded
     chunk included), reproduces the 1-device numbers and table rows exactly."""

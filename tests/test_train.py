@@ -401,6 +401,7 @@ def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     assert _leaves_equal(_final_params(cfg, tmp_path / cfg.train.name), full_run[1].params)
 
 
+@pytest.mark.slow
 def test_training_updates_cycle_through_the_radio_ranges_and_rollouts_keep_to_sectors():
     """train.radio_ranges: update u trains at range u mod their count, traced or not.
     train.sectors: at a short range every robot samples from the sector rule's mask
