@@ -19,6 +19,7 @@ from jaxmripp.runtime import weights as weights_format
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.config import Config, presets
 from jaxmripp.parallel.mesh import is_main_process
+from jaxmripp.sim import privileged
 
 
 def is_training_run(folder: str | Path) -> bool:
@@ -91,8 +92,11 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
     trainer = trainmod.Trainer.build(cfg)
     in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay)
                if cfg.policy.claims or sweep.policy.claims else None)
-    return policy_planner(trainer.network, trained_params(run_dir, cfg, best),
-                          cfg.policy.width, in_turn=in_turn)
+    network = trainer.network
+    if cfg.ppo.privileged_critic:  # the critic's training-only inputs, unknown here
+        network = privileged.ZeroFilled(network, cfg.robots.count)
+    return policy_planner(network, trained_params(run_dir, cfg, best), cfg.policy.width,
+                          in_turn=in_turn)
 
 
 AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight", "belief_features",

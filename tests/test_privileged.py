@@ -93,6 +93,11 @@ def test_the_critic_reads_them_and_the_actor_does_not(states):
     np.testing.assert_array_equal(l1, l2)
     np.testing.assert_array_equal(m1, m2)
     assert not np.allclose(v1, v2)
+    # Where nobody has them (evaluation), zeros stand in: the actor is the same.
+    filled = privileged.ZeroFilled(network, obs.mask.shape[1])
+    m3, l3, _ = jax.jit(lambda o: ppo.apply_batched(filled, params, memory, o))(obs)
+    np.testing.assert_array_equal(l3, l1)
+    np.testing.assert_array_equal(m3, m1)
     # Off, the observation passes unchanged.
     plain = dataclasses.replace(CFG, ppo=dataclasses.replace(CFG.ppo, privileged_critic=False))
     assert ppo.critic_inputs(plain, obs, state) is obs
@@ -111,3 +116,14 @@ def test_a_run_with_the_privileged_critic_trains_and_exports(tmp_path):
         EnvParams.from_config(cfg), False).global_state.shape[0] + privileged.size(n)
     head = header(cfg)
     check_layout(head, policymod.flatten_params(state.params))
+    # Evaluated like any run (the critic's extra inputs zero-filled).
+    from jaxmripp import pipeline
+
+    sweep_cfg = cfgmod.load("configs/smoke.yaml", ["eval.worlds=2", "eval.trials=1",
+                                                   "eval.planners=[policy]"])
+    planner = pipeline.sweep_planner(tmp_path / "run", sweep_cfg, "policy")
+    from jaxmripp.evaluation import sweep
+
+    result = sweep.run_sweep(sweep_cfg, {"policy": planner}, log=lambda _: None,
+                             time_planning=False, keep_pictures=False)
+    assert all(np.isfinite(r.discovered).all() and r.discovered.mean() > 0 for r in result.runs)

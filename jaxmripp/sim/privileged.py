@@ -15,6 +15,9 @@ One environment, no batch axes (callers vmap).
 
 from __future__ import annotations
 
+import dataclasses
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 
@@ -62,3 +65,18 @@ def observation_zeros(params: EnvParams, privileged: bool) -> Observation:
         return obs
     extra = jnp.zeros((size(params.n_robots),), jnp.float32)
     return obs.replace(global_state=jnp.concatenate([obs.global_state, extra]))
+
+
+@dataclasses.dataclass(frozen=True)
+class ZeroFilled:
+    """A network whose critic was trained with these inputs, applied where nobody has them
+    (evaluation sweeps): zeros stand in for them. Only the critic's value changes, which
+    no planner reads; the actor's memory and logits are the network's own."""
+
+    network: Any  # a flax module: apply(params, memory (W,), obs) of one robot
+    robots: int
+
+    def apply(self, params, memory, obs: Observation):
+        extra = jnp.zeros((*obs.global_state.shape[:-1], size(self.robots)), jnp.float32)
+        return self.network.apply(params, memory, obs.replace(
+            global_state=jnp.concatenate([obs.global_state, extra], axis=-1)))
