@@ -138,9 +138,12 @@ def metadata(cfg: cfgmod.Config, trained: Path, config_path: Path, checkpoint: s
         "checkpoint": checkpoint,
         "updates": records[-1]["update"],
         "agent_steps": records[-1]["env_steps"],
-        # over the episodes that ended in the last chunk's updates (some end in none)
-        "training_discovered": round(
-            episode_mean(records[-cfg.train.updates_per_chunk:], "discovered"), 4),
+        # over the episodes that ended in the last chunk's updates (some end in none); by
+        # update number, as a run's records may be one per update or one per chunk
+        "training_discovered": round(episode_mean(
+            [r for r in records
+             if r["update"] > records[-1]["update"] - cfg.train.updates_per_chunk],
+            "discovered"), 4),
     }
     if cfg.train.init_from:
         meta["init_from"] = cfg.train.init_from

@@ -36,8 +36,13 @@ def test_training_figures_are_the_folders_own(name):
     assert meta["train_minutes"] == round(sum(r["seconds"] for r in records) / 60, 1)
     assert meta["updates"] == records[-1]["update"]
     assert meta["agent_steps"] == records[-1]["env_steps"]
-    assert meta["training_discovered"] == round(records[-1]["discovered"], 4)
     cfg = cfgmod.load(folder / "config.yaml")
+    # The last chunk's records (one per update, or one for the chunk), episodes weighted.
+    first = records[-1]["update"] - cfg.train.updates_per_chunk
+    last = [r for r in records if r["update"] > first]
+    ended = sum(r.get("episodes", 1) for r in last)
+    found = sum(r["discovered"] * r.get("episodes", 1) for r in last)
+    assert meta["training_discovered"] == round(found / ended, 4)
     prefix = "python train.py --config "
     assert meta["command"].startswith(prefix)
     assert cfgmod.load(REPO / meta["command"][len(prefix):]) == cfg
