@@ -160,12 +160,17 @@ class Trainer:
             return state
         return state.replace(runner=self.start_runner(state.key, int(state.update)))
 
+    def example_observation(self):
+        """One robot's all-zero observation as the network reads it (its critic's inputs
+        included): the shapes its parameters are initialised for."""
+        return privileged.observation_zeros(self.env_params, self.cfg.ppo.privileged_critic)
+
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
         # One compiled program: run eagerly, the initialisers compile op by op (hundreds).
         params = jax.jit(self.network.init)(jax.random.fold_in(key, PARAMS_SALT),
                                             initial_memory(self.cfg.policy),
-                                            privileged.observation_zeros(self.env_params, self.cfg.ppo.privileged_critic))
+                                            self.example_observation())
         return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32),
                           None)
 
@@ -175,7 +180,7 @@ class Trainer:
         key = jax.random.PRNGKey(self.cfg.train.seed)
         if "shapes" not in self._cache:
             params = jax.eval_shape(self.network.init, key, initial_memory(self.cfg.policy),
-                                    privileged.observation_zeros(self.env_params, self.cfg.ppo.privileged_critic))
+                                    self.example_observation())
             self._cache["shapes"] = TrainState(
                 params, jax.eval_shape(self.optimizer.init, params), jax.eval_shape(lambda: key),
                 jax.ShapeDtypeStruct((), jnp.int32), None)

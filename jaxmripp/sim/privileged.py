@@ -49,22 +49,23 @@ def features(state: EnvState) -> jax.Array:
         jnp.float32) / total
 
 
+def _extended(obs: Observation, extra: jax.Array) -> Observation:
+    """obs with `extra` (broadcast to (..., P)) appended to its global_state (..., G)."""
+    extra = jnp.broadcast_to(extra, (*obs.global_state.shape[:-1], extra.shape[-1]))
+    return obs.replace(global_state=jnp.concatenate([obs.global_state, extra], axis=-1))
+
+
 def appended(obs: Observation, env_state: EnvState) -> Observation:
     """obs (E, N, ...) of E environments with each environment's `features` appended to
     every robot's global_state: (E, N, N * S + 2) -> (E, N, N * S + 2 + size(N))."""
-    extra = jax.vmap(features)(env_state)  # (E, P)
-    extra = jnp.broadcast_to(extra[:, None], (*obs.global_state.shape[:-1], extra.shape[-1]))
-    return obs.replace(global_state=jnp.concatenate([obs.global_state, extra], axis=-1))
+    return _extended(obs, jax.vmap(features)(env_state)[:, None])
 
 
 def observation_zeros(params: EnvParams, privileged: bool) -> Observation:
     """One robot's all-zero observation as a critic with (or without) these inputs reads
     it: shapes for initialising a network."""
     obs = Observation.zeros(params)
-    if not privileged:
-        return obs
-    extra = jnp.zeros((size(params.n_robots),), jnp.float32)
-    return obs.replace(global_state=jnp.concatenate([obs.global_state, extra]))
+    return _extended(obs, jnp.zeros((size(params.n_robots),), jnp.float32)) if privileged else obs
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,6 +78,5 @@ class ZeroFilled:
     robots: int
 
     def apply(self, params, memory, obs: Observation):
-        extra = jnp.zeros((*obs.global_state.shape[:-1], size(self.robots)), jnp.float32)
-        return self.network.apply(params, memory, obs.replace(
-            global_state=jnp.concatenate([obs.global_state, extra], axis=-1)))
+        zeros = jnp.zeros((size(self.robots),), jnp.float32)
+        return self.network.apply(params, memory, _extended(obs, zeros))
