@@ -101,7 +101,9 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("ppo.algo=sac", "one of ippo, mappo"),
         ("gp.noise=0", "gp.noise: got 0.0"),
         ("gp.peer_rounds=0", "gp.peer_rounds: got 0; allowed: a number in [1, 255]"),
-        ("train.radio_ranges=[0.3, -1]", "train.radio_ranges: got [0.3, -1.0]; allowed: a list"),
+        ("train.radio_ranges=[0.3, .inf]", "train.radio_ranges: got [0.3, inf], a removed "
+                                            "setting; allowed: [] (what is built in) or "
+                                            "leaving it out"),
         ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),
         ("train.blocks=3", "train.blocks: got 3; allowed: 0 or a divisor of the environments "
                            "per minibatch (train.envs / ppo.minibatches = 16)"),
@@ -159,6 +161,20 @@ def test_preset_with_an_unknown_key_is_refused_in_one_line(tmp_path):
     message = str(err.value)
     assert message.startswith("typo.yaml: eval.wordls: unknown key; did you mean 'eval.worlds'?")
     assert "\n" not in message
+
+
+def test_a_removed_setting_loads_only_at_its_built_in_value(tmp_path):
+    """An older run's config.yaml holds the removed keys at the value the code now builds
+    in: it loads as the config without them, and a preset or override with another value
+    is refused."""
+    for key, value in cfgmod.REMOVED.items():
+        section, name = key.split(".")
+        assert name not in dataclasses.asdict(getattr(Config(), section)), key
+        older = tmp_path / "config.yaml"
+        older.write_text(yaml.safe_dump({section: {name: value}, "world": {"size": 30}}))
+        assert cfgmod.load(older) == cfgmod.load(None, ["world.size=30"])
+    with pytest.raises(ConfigError, match="train.radio_ranges: got \\[0.1\\], a removed"):
+        cfgmod.load(None, ["train.radio_ranges=[0.1]"])
 
 
 def test_malformed_override_and_missing_file():

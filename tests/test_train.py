@@ -402,19 +402,10 @@ def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
 
 
 @pytest.mark.slow
-def test_training_updates_cycle_through_the_radio_ranges_and_rollouts_keep_to_sectors():
-    """train.radio_ranges: update u trains at range u mod their count, traced or not.
-    train.sectors: at a short range every robot samples from the sector rule's mask
+def test_training_rollouts_keep_to_sectors():
+    """train.sectors: at a short range every robot samples from the sector rule's mask
     (offering nothing outside its sector while its own has unknown views), which the plain
     rollout does not."""
-    cyc = cfgmod.load("configs/smoke.yaml", ["train.radio_ranges=[0.1, .inf]"])
-    base = DynamicParams.from_config(cyc)
-    ranges = [float(trainmod.update_dynamic(cyc, base, u).radio_range) for u in range(3)]
-    assert ranges == [np.float32(0.1), np.inf, np.float32(0.1)]
-    traced = jax.jit(lambda u: trainmod.update_dynamic(cyc, base, u).radio_range)
-    assert [float(traced(jnp.int32(u))) for u in (3, 4)] == [np.inf, np.float32(0.1)]
-    assert trainmod.update_dynamic(cfgmod.load("configs/smoke.yaml"), base, 5) is base
-
     cfg = cfgmod.load("configs/smoke.yaml", ["train.sectors=true", "train.rollout_steps=6"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)

@@ -12,7 +12,7 @@ convention), `errors`.
 """
 
 from jaxmripp.config.errors import ConfigError
-from jaxmripp.config.loading import from_dict, load, parse_override, to_dict, to_yaml
+from jaxmripp.config.loading import REMOVED, from_dict, load, parse_override, to_dict, to_yaml
 from jaxmripp.config.rules import METRIC_SINKS, PLANNERS, REFERENCES, RULES, validate
 from jaxmripp.config.sections import (
     REFERENCE_SIZE,
@@ -37,6 +37,7 @@ __all__ = [
     "PLANNERS",
     "REFERENCES",
     "REFERENCE_SIZE",
+    "REMOVED",
     "RULES",
     "CandidateConfig",
     "Config",

@@ -23,6 +23,11 @@ from jaxmripp.config.rules import validate
 from jaxmripp.config.sections import Config
 
 _MAX_BASE_DEPTH = 8  # `base` presets nested deeper than this are refused (cycles)
+# Keys removed from the configuration, each with the value its code path now always takes
+# (as YAML shows it): a config.yaml holding that value loads, any other is refused.
+REMOVED: dict[str, Any] = {
+    "train.radio_ranges": [],
+}
 
 
 def _coerce_tuple(key: str, value: Any, annotation) -> tuple:
@@ -86,6 +91,20 @@ def _unknown_key(key: str, known: typing.Iterable[str]) -> ConfigError:
     return ConfigError(f"{key}: unknown key{hint} (known: {', '.join(sorted(known))})")
 
 
+def _check_removed(key: str, value: Any) -> None:
+    """A removed key is accepted at the value its code now builds in, else refused."""
+    built_in = REMOVED[key]
+    if isinstance(built_in, list):
+        same = isinstance(value, (list, tuple)) and list(value) == built_in
+    elif isinstance(built_in, bool) or isinstance(value, bool):
+        same = value is built_in
+    else:
+        same = value == built_in
+    if not same:
+        raise ConfigError(f"{key}: got {shown(value)!r}, a removed setting; allowed: "
+                          f"{built_in!r} (what is built in) or leaving it out")
+
+
 def _merge_section(name: str, values: Any, current: Any, cls: type) -> Any:
     """The section `current` with the keys in `values` replaced, each coerced to its type."""
     if not isinstance(values, dict):
@@ -93,6 +112,9 @@ def _merge_section(name: str, values: Any, current: Any, cls: type) -> Any:
     fields = typing.get_type_hints(cls)
     changes = {}
     for key, value in values.items():
+        if f"{name}.{key}" in REMOVED:
+            _check_removed(f"{name}.{key}", value)
+            continue
         if key not in fields:
             raise _unknown_key(f"{name}.{key}", fields)
         changes[key] = _coerce(f"{name}.{key}", value, fields[key])

@@ -135,7 +135,6 @@ RULES: dict[str, tuple] = {
     "train.updates": _range(0, 10**9),
     "train.updates_per_chunk": _range(1, 10**6),
     "train.keep_checkpoints": _range(1, 1000),
-    "train.radio_ranges": _each(_NONNEG),
     "train.log": (lambda v: len(set(v)) == len(v) and all(x in METRIC_SINKS for x in v),
                   "a list of distinct names from " + ", ".join(METRIC_SINKS)),
     "train.blocks": _range(0, 1 << 20),

@@ -217,9 +217,6 @@ class TrainConfig:
     # continue a policy trained with fewer robots; one trained without the view prior
     # gets it at weight policy.view_prior. "" = random initialisation.
     init_from: str = ""
-    # Update u trains at radio range radio_ranges[u % len] (empty: radio.range throughout),
-    # so that one policy meets the short ranges the evaluation tests as well as the long.
-    radio_ranges: tuple[float, ...] = ()
     # Robots keep to their sectors while the radio range is short (jaxmripp.spec.sectors),
     # in training rollouts as eval.sectors does in sweeps.
     sectors: bool = False

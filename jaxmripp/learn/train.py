@@ -62,15 +62,6 @@ class TrainState:
     runner: ppo.Runner | None
 
 
-def update_dynamic(cfg: Config, dyn: DynamicParams, update) -> DynamicParams:
-    """The dynamic parameters the update after `update` done ones trains with:
-    `train.radio_ranges[update % len]` as the radio range (`update` may be traced)."""
-    ranges = cfg.train.radio_ranges
-    if not ranges:
-        return dyn
-    return dyn.replace(radio_range=jnp.asarray(ranges, jnp.float32)[update % len(ranges)])
-
-
 @dataclasses.dataclass
 class Trainer:
     """Everything about a run but its state: config, static and dynamic env params,
@@ -150,9 +141,9 @@ class Trainer:
                 lambda key, dyn: ppo.start_runner(key, self.cfg, self.env_params, dyn, self.data),
                 in_shardings=self.data.replicated, out_shardings=self.data.split())
         key = jax.random.fold_in(jax.random.fold_in(np.asarray(key), update), RUNNER_SALT)
-        dyn = update_dynamic(self.cfg, DynamicParams.from_config(self.cfg), update)
         return self._cache["start"](self.data.put_replicated(np.asarray(key)),
-                                     self.data.put_replicated(dyn))
+                                     self.data.put_replicated(
+                                         DynamicParams.from_config(self.cfg)))
 
     def with_runner(self, state: TrainState) -> TrainState:
         """`state` with environments: its own, or fresh ones at its update."""
@@ -236,7 +227,6 @@ def _chunk_fn(cfg: Config, env_params: EnvParams, network, optimizer, data: Data
         # which differs with the chunk's length (a loop of one is inlined): every chunk
         # length then runs the same update program, to the bit.
         state = jax.lax.optimization_barrier(state)
-        dyn = update_dynamic(cfg, dyn, state.update)
         key_rollout, key_update = jax.random.split(jax.random.fold_in(state.key, state.update))
         teacher = ppo.Teacher.at(cfg.ppo, state.update)
         runner, transitions, stats = ppo.rollout(key_rollout, state.runner, state.params,
