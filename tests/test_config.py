@@ -91,9 +91,8 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.layout=spiral", "allowed: one of grid, random"),
         ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
         ("radio.sector_split=rings", "radio.sector_split: got rings; allowed: one of angle, area"),
-        ("radio.map_reach=world", "radio.map_reach: got world; allowed: one of radio, team"),
-        (["radio.map_reach=team", "radio.share_maps=false"],
-         "radio.map_reach: got team; allowed: radio while radio.share_maps is false"),
+        ("radio.map_reach=team", "radio.map_reach: got team, a removed setting; allowed: "
+                                 "radio (the one built in) or leaving it out"),
         ("radio.sector_count=-1", "radio.sector_count: got -1; allowed: a number in [0, 256]"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),
@@ -102,8 +101,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("gp.noise=0", "gp.noise: got 0.0"),
         ("gp.peer_rounds=0", "gp.peer_rounds: got 0; allowed: a number in [1, 255]"),
         ("train.radio_ranges=[0.3, .inf]", "train.radio_ranges: got [0.3, inf], a removed "
-                                            "setting; allowed: [] (what is built in) or "
-                                            "leaving it out"),
+                                            "setting; allowed: [] (the one built in)"),
         ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),
         ("train.blocks=3", "train.blocks: got 3; allowed: 0 or a divisor of the environments "
                            "per minibatch (train.envs / ppo.minibatches = 16)"),

@@ -383,31 +383,6 @@ def test_zero_range_nobody_learns_anything(fns):
     assert int(state.know.diagonal().min()) >= 2  # the robots did move
 
 
-def test_team_map_reach_merges_every_map_while_waypoints_keep_the_radio(fns):
-    """radio.map_reach = team at zero range: every robot ends a step with the union of the
-    maps the robots hold after the same step without any radio, and still hears nobody."""
-    team = bind(env_fns(dataclasses.replace(
-        P0, radio=StaticRadio(relay=False, share_maps=True, map_reach="team")),
-        with_reset=False), D_ZERO)
-    obs, state = fns.zero.reset(jax.random.key(3))
-    for seed in range(3):
-        _, actions = fns.act(jax.random.key(10 + seed), jnp.zeros((N, 1), jnp.float32), obs,
-                             state)
-        obs, alone, *_ = fns.zero.step(jax.random.key(seed), state, actions)
-        _, merged, *_ = team.step(jax.random.key(seed), state, actions)
-        own = np.asarray(maps.robot_maps(alone.team_map, N))
-        known = own != geometry.UNKNOWN  # known codes are the truth: robots never disagree
-        union = np.where(known.any(axis=0), np.where(known, own, -1).max(axis=0),
-                         geometry.UNKNOWN)
-        assert (known.sum(axis=(1, 2, 3)) < (union != geometry.UNKNOWN).sum()).all()
-        for robot_map in np.asarray(maps.robot_maps(merged.team_map, N)):
-            np.testing.assert_array_equal(robot_map, union)
-        for robot_top in np.asarray(merged.building_top):
-            np.testing.assert_array_equal(robot_top, np.asarray(alone.building_top).max(axis=0))
-        np.testing.assert_array_equal(merged.know, alone.know)
-        state = alone
-
-
 def teleport(state, positions, headings, new_headings):
     """Robots at `positions` facing `headings`; candidate 0 turns each to `new_headings`."""
     positions = jnp.asarray(positions, jnp.float32)

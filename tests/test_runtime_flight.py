@@ -403,7 +403,7 @@ def sense(planner, position, heading=1, n_seen=0, voxels=None, values=None):
     planner.sense(F32(position), heading, voxels, values, n_seen)
 
 
-def test_export_header_carries_safety_and_other_flight_modes_and_map_reaches_are_refused(
+def test_export_header_carries_safety_and_other_flight_modes_and_removed_settings_are_refused(
         tmp_path):
     spec = spec_of()
     assert (spec.flight, spec.takeoff_scan, spec.intents, spec.priority) == (
@@ -429,11 +429,14 @@ def test_export_header_carries_safety_and_other_flight_modes_and_map_reaches_are
                                                      f"'{flight_mode}'.*known_free only"):
             OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
     head["config"]["safety"]["flight"] = "known_free"
+    # A removed setting, as an older export holds it: refused at another value than the
+    # one built in, read at that one.
     head["config"]["radio"]["map_reach"] = "team"
     (tmp_path / "policy.json").write_text(json.dumps(head))
-    with pytest.raises(WeightsFormatError, match="config.radio.map_reach is not 'radio'"):
+    with pytest.raises(WeightsFormatError, match="config.radio.map_reach is 'team', a "
+                                                 "removed setting; the runtime has only 'radio'"):
         OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
-    del head["config"]["radio"]["map_reach"]  # absent: radio
+    head["config"]["radio"]["map_reach"] = "radio"
     (tmp_path / "policy.json").write_text(json.dumps(head))
     assert OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0).spec.share_maps == \
         CFG.radio.share_maps

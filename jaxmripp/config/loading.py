@@ -27,6 +27,7 @@ _MAX_BASE_DEPTH = 8  # `base` presets nested deeper than this are refused (cycle
 # (as YAML shows it): a config.yaml holding that value loads, any other is refused.
 REMOVED: dict[str, Any] = {
     "train.radio_ranges": [],
+    "radio.map_reach": "radio",
 }
 
 
@@ -101,8 +102,9 @@ def _check_removed(key: str, value: Any) -> None:
     else:
         same = value == built_in
     if not same:
-        raise ConfigError(f"{key}: got {shown(value)!r}, a removed setting; allowed: "
-                          f"{built_in!r} (what is built in) or leaving it out")
+        as_yaml = lambda v: str(v).lower() if isinstance(v, bool) else shown(v)  # noqa: E731
+        raise ConfigError(f"{key}: got {as_yaml(value)}, a removed setting; allowed: "
+                          f"{as_yaml(built_in)} (the one built in) or leaving it out")
 
 
 def _merge_section(name: str, values: Any, current: Any, cls: type) -> Any:

@@ -14,7 +14,6 @@ from jaxmripp.config.sections import Config
 from jaxmripp.spec import feeding
 from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
 from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
-from jaxmripp.spec.sharing import MAP_REACHES
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -126,7 +125,6 @@ RULES: dict[str, tuple] = {
     "ppo.teacher": _choice("nbv", "nbv_ahead", "oracle"),
     "ppo.teacher_facade": _NONNEG,
     "radio.sector_split": _choice(*SECTOR_SPLITS),
-    "radio.map_reach": _choice(*MAP_REACHES),
     "radio.sector_count": _range(0, 256),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
@@ -212,9 +210,6 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if r.collision_distance >= r.range:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
-    if r.map_reach != "radio" and not r.share_maps:
-        problems.append(("radio.map_reach", r.map_reach,
-                         "radio while radio.share_maps is false (no maps are merged)"))
     problems += _pad_checks(cfg)
     problems += _sector_checks(cfg)
     if cfg.policy.view_prior > 0 and not cfg.policy.view_features:

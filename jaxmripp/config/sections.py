@@ -73,9 +73,6 @@ class RadioConfig:
     range: float = 0.3  # rho; .inf for global communication
     relay: bool = False  # forward everything known (multi-hop) instead of single hop
     share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
-    # radio | team: team merges the maps over the whole team every round (the simulator
-    # only; a measurement of what the maps' reach costs, jaxmripp.spec.sharing)
-    map_reach: str = "radio"
     collision_distance: float = 0.05  # d_c
     # how eval.sectors / train.sectors divide the world: angle (equal azimuth spans) or
     # area (equal ground areas; jaxmripp.spec.sectors)

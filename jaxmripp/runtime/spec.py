@@ -31,6 +31,12 @@ class GPSpec:
     peer_rounds: int = UNCAPPED  # as exports from before the cap read
 
 
+# Settings removed from the configuration, each with the one value the runtime now builds
+# in: a header written before their removal holds them, and is refused at any other value.
+REMOVED = {
+    ("radio", "map_reach"): "radio",
+}
+
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
 _GP_DEFAULTS = {f.name: f.default for f in dataclasses.fields(GPSpec)
                 if f.default is not dataclasses.MISSING}
@@ -126,11 +132,12 @@ class RuntimeSpec:
                 f"export header: config.safety.flight is {flight!r}; the onboard runtime "
                 "flies known_free only (export a policy trained with safety.flight="
                 "known_free)")
-        if get("radio", "map_reach", str, default="radio") != "radio":
-            raise WeightsFormatError(
-                "export header: config.radio.map_reach is not 'radio'; a radio carries "
-                "maps only within its range (export a policy trained with "
-                "radio.map_reach=radio)")
+        for (name, key), built_in in REMOVED.items():
+            value = section(name).get(key, built_in)
+            if type(value) is not type(built_in) or value != built_in:
+                raise WeightsFormatError(
+                    f"export header: config.{name}.{key} is {value!r}, a removed setting; "
+                    f"the runtime has only {built_in!r} (export a policy trained without it)")
         if "share_maps" not in section("radio"):
             raise WeightsFormatError("export header: missing field config.radio.share_maps "
                                      "(exported before map sharing, protocol 3; re-export "

@@ -20,9 +20,9 @@ policy.json
                       facade_weight; absent: none), belief.* (the target belief of
                       `jaxmripp.spec.belief`: features, strength and the trained world's
                       prior rate m; written with the belief input only); infinities are the
-                      string "inf". The runtime flies safety.flight "known_free" only,
-                      needs radio.share_maps (whether robots exchange maps) and takes
-                      radio.map_reach "radio" only (absent: radio).
+                      string "inf". The runtime flies safety.flight "known_free" only and
+                      needs radio.share_maps (whether robots exchange maps); settings since
+                      removed (`spec.REMOVED`) may appear only at the value built in.
     policy            jaxmripp.learn.policy.runtime_config (width, heads, layers, ff_mult,
                       central_critic)
     weights           {"file": "policy.npz", "sha256": ..., "arrays": n, "parameters": n}

@@ -208,8 +208,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     contact = comms.contacts(state.position, dyn.radio_range)
     know = comms.exchange(know, contact, params.radio.relay)
     if params.radio.share_maps:
-        map_contact = contact if params.radio.map_reach == "radio" else jnp.ones_like(contact)
-        team_map, top = comms.share_maps(team_map, top, map_contact, params.radio.relay)
+        team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
     state = state.replace(team_map=team_map, building_top=top, heard=contact,
                           discovered=discovered, team_found=team_found, history_pose=history_pose,
                           history_utility=history_utility, know=know,

@@ -33,7 +33,6 @@ class StaticRobots:
 class StaticRadio:
     relay: bool  # forward everything known (multi-hop) instead of single hop
     share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
-    map_reach: str = "radio"  # radio | team (jaxmripp.spec.sharing)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -72,8 +71,7 @@ class EnvParams:
         return cls(world=cfg.world,
                    robots=StaticRobots(cfg.robots.count, cfg.robots.start_heading),
                    sensor=cfg.sensor, safety=cfg.safety,
-                   radio=StaticRadio(cfg.radio.relay, cfg.radio.share_maps,
-                                     cfg.radio.map_reach),
+                   radio=StaticRadio(cfg.radio.relay, cfg.radio.share_maps),
                    candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps,
                    ahead=StaticAhead(cfg.policy.ahead_branches, cfg.policy.ahead_discount,
                                      cfg.policy.ahead_facade_weight),

@@ -32,12 +32,4 @@ merging a delta is merging the sender's map: the receiver ends with the same map
 environment's merge. The JAX environment merges whole maps
 (`jaxmripp.sim.comms.share_maps`); the runtime exchanges deltas
 (`jaxmripp.runtime.sharing`); a parity test keeps the two equal on random episodes.
-
-`radio.map_reach` = team (the simulator only; the default is radio) merges every robot's
-map with the whole team's every round, whatever the radio's range, while everything else
-(waypoints, GPs, intents, the sector rule) keeps the radio's reach. No radio does this:
-it measures what the maps' limited reach costs a team, as `safety.flight = optimistic`
-measures what safe flight costs.
 """
-
-MAP_REACHES = ("radio", "team")  # radio.map_reach
