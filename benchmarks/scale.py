@@ -210,12 +210,9 @@ def time_teams(teams: list[int], args) -> int:
     micros = {}
     bar = progress.bar(len(teams), "timed teams", unit="team")
     for n in teams:
-        # The random team steps without the sector rule, whatever the overrides give the sweeps
-        # (a radio.sector_count above a timed team's N would otherwise be refused).
         cfg = config.load(None, [f"world.size={args.size}", f"robots.count={n}",
                                  f"radio.range={args.radio_range}",
-                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.overrides,
-                                 "eval.sectors=false", "train.sectors=false"])
+                                 f"robots.budget=[{10 / 3 * n}, {10 / 3 * n}]", *args.overrides])
         stepper = RandomTeamStepper(EnvParams.from_config(cfg), DynamicParams.from_config(cfg),
                                     args.envs)
         stepper.reset()

@@ -99,9 +99,6 @@ def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -
     parser.add_argument("--sectors", action="store_true",
                         help="each robot keeps to its sector of the world while it has unknown "
                              "views there (jaxmripp.spec.sectors)")
-    parser.add_argument("--sector-count", type=int, default=None, metavar="K",
-                        help="with --sectors: K sectors shared by the team "
-                             "(radio.sector_count; default: the export's)")
     parser.add_argument("--escape", action="store_true",
                         help="robots that met out of radio range may fly apart "
                              "(safety.escape; default: the export's setting)")
@@ -140,7 +137,7 @@ def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -
         planners = [OnboardPlanner(spec, i, per_robot, team_size=n, policy=policy, kappa=kappa,
                                    lam=lam, max_steps=steps, seed=args.seed * 1000 + i,
                                    mode=args.planner,
-                                   sectors=args.sectors, sector_count=args.sector_count,
+                                   sectors=args.sectors,
                                    team_key=key)
                     for i in range(n)]
     except ValueError as err:

@@ -90,10 +90,8 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("candidates.positions=0", "candidates.positions: got 0"),
         ("world.layout=spiral", "allowed: one of grid, random"),
         ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
-        ("radio.sector_split=rings", "radio.sector_split: got rings; allowed: one of angle, area"),
         ("radio.map_reach=team", "radio.map_reach: got team, a removed setting; allowed: "
                                  "radio (the one built in) or leaving it out"),
-        ("radio.sector_count=-1", "radio.sector_count: got -1; allowed: a number in [0, 256]"),
         ("world.size=12.5", "allowed: an integer"),
         ("radio.relay=yes please", "allowed: true or false"),
         ("world.buildings=400", "buildings fit"),
@@ -113,18 +111,6 @@ def test_bad_values_give_one_clear_line(override, needle):
     message = str(err.value)
     assert needle in message
     assert "\n" not in message
-
-
-def test_shared_sectors_need_a_robot_each():
-    with pytest.raises(ConfigError, match=r"radio.sector_count: got 4; allowed: 0 \(one sector "
-                       r"per robot\) or at most the smallest team that keeps to sectors \(3 robots"):
-        cfgmod.load(None, ["radio.sector_count=4", "eval.sectors=true", "eval.team_sizes=[3, 16]"])
-    with pytest.raises(ConfigError, match="sectors \\(2 robots"):
-        cfgmod.load(None, ["radio.sector_count=4", "train.sectors=true", "robots.count=2"])
-    # Teams that do not keep to sectors need no check.
-    assert cfgmod.load(None, ["radio.sector_count=4", "eval.team_sizes=[3]"]).radio.sector_count == 4
-    assert cfgmod.load(None, ["radio.sector_count=4", "eval.sectors=true",
-                              "eval.team_sizes=[16, 64]"]).radio.sector_count == 4
 
 
 def test_view_prior_needs_the_view_features():

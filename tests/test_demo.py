@@ -1,5 +1,5 @@
 """`python -m jaxmripp.demo`: the shipped policy flies a short mission on the NumPy runtime
-over the signed team radio, and a bad export or sector count gives one error line."""
+over the signed team radio, and a bad export or budget gives one error line."""
 
 import re
 from pathlib import Path
@@ -78,13 +78,10 @@ def test_a_missing_export_gives_one_error_line(tmp_path, capsys):
     assert err.count("\n") == 1 and err.startswith("error: ") and "absent" in err
 
 
-@pytest.mark.parametrize("flags, message", [
-    (["--sector-count", "2"], "sector_count: got 2; it needs sectors=True"),
-    (["--sectors", "--sector-count", "4"], "sector_count: got 4; allowed: an integer 0 .. 3"),
-], ids=["without_sectors", "more_than_robots"])
-def test_a_bad_sector_count_gives_one_error_line(capsys, flags, message):
+def test_a_bad_budget_gives_one_error_line(capsys):
+    message = "budget: got -1.0; allowed: a positive number"
     with pytest.raises(SystemExit) as exit_info:
-        demo.main([*flags, "--robots", "3"])
+        demo.main(["--budget", "-3", "--robots", "3"])
     assert exit_info.value.code == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and message in err

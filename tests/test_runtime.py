@@ -197,48 +197,6 @@ def test_gain_model_travels_in_the_header_and_older_headers_keep_the_default():
         RuntimeSpec.from_header(header)
 
 
-def test_sector_split_travels_in_the_header_and_older_headers_keep_the_angle_split():
-    by_area = dataclasses.replace(CFG, radio=dataclasses.replace(CFG.radio, sector_split="area"))
-    assert spec_of(by_area).sector_split == "area" and spec_of().sector_split == "angle"
-    header = weights.jsonable(export.header(by_area))
-    del header["config"]["radio"]["sector_split"]  # exported before the setting
-    assert RuntimeSpec.from_header(header).sector_split == "angle"
-    header["config"]["radio"]["sector_split"] = "rings"
-    with pytest.raises(WeightsFormatError, match="sector_split 'rings' is not one of angle, area"):
-        RuntimeSpec.from_header(header)
-
-
-def test_sector_count_travels_in_the_header_and_older_headers_give_each_robot_one():
-    shared = dataclasses.replace(CFG, radio=dataclasses.replace(CFG.radio, sector_count=2))
-    assert spec_of(shared).sector_count == 2 and spec_of().sector_count == 0
-    header = weights.jsonable(export.header(shared))
-    del header["config"]["radio"]["sector_count"]  # exported before the setting
-    assert RuntimeSpec.from_header(header).sector_count == 0
-    onboard = RuntimeSpec.from_header(weights.jsonable(export.header(shared)))
-    with pytest.raises(ValueError, match="team_size: got 1; the export's radio.sector_count "
-                       "= 2 needs at least 2 robots with sectors=True"):
-        OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True)
-    assert OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv").team_size == 1
-    # The planner's own sector_count replaces the export's, within the same bounds.
-    assert OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True,
-                          sector_count=1).sector_count == 1
-    assert OnboardPlanner(onboard, 0, 1.0, mode="nbv", sectors=True).sector_count == 2
-    assert OnboardPlanner(onboard, 0, 1.0, mode="nbv").sector_count == 0
-    for bad in (-1, 2, 1.5, True):
-        with pytest.raises(ValueError, match=f"sector_count: got {bad!r}; allowed: an integer "
-                           "0 .. 1"):
-            OnboardPlanner(onboard, 0, 1.0, team_size=1, mode="nbv", sectors=True,
-                           sector_count=bad)
-    with pytest.raises(ValueError, match="sector_count: got 2; it needs sectors=True"):
-        OnboardPlanner(onboard, 0, 1.0, mode="nbv", sector_count=2)
-    team = header["config"]["robots"]["count"]
-    for bad in (-2, team + 1):
-        header["config"]["radio"]["sector_count"] = bad
-        with pytest.raises(WeightsFormatError, match=f"sector_count is {bad}; allowed: 0 "
-                           f"\\(one sector per robot\\) to robots.count = {team}"):
-            RuntimeSpec.from_header(header)
-
-
 def test_peer_round_cap_travels_in_the_header_and_older_headers_are_uncapped():
     capped = dataclasses.replace(CFG, gp=dataclasses.replace(CFG.gp, peer_rounds=2))
     assert spec_of(capped).gp.peer_rounds == 2

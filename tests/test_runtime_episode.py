@@ -23,8 +23,6 @@ did not happen in any seed we ran (the test prints the smallest JAX margin it me
 
 from __future__ import annotations
 
-import dataclasses
-
 from types import SimpleNamespace
 
 import jax
@@ -331,27 +329,18 @@ def test_the_runtime_holds_exactly_the_robots_the_env_holds(priority):
     assert holds >= 2, "no robot held: pick other seeds"
 
 
-@pytest.mark.parametrize("split, exported, onboard", [
-    (None, 0, None), ("angle", 0, None), ("area", 0, None), ("angle", 2, None), ("angle", 0, 2)],
-    ids=["whole_mask", "sectors", "equal_area_sectors", "shared_sectors",
-         "shared_sectors_set_onboard"])
-def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, split, exported,
-                                                          onboard):
+@pytest.mark.parametrize("sectors", [False, True], ids=["whole_mask", "sectors"])
+def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors):
     """The runtime policy's logits, memory and choice are the Flax policy's on the env's
     observation; with sectors on both sides (`OnboardPlanner(sectors=True)`, the JAX
-    sweep's `eval.sectors`; `radio.sector_split` from the export, `radio.sector_count`
-    from the export or the planner's `sector_count`) also on the same sector-restricted
-    masks."""
-    sectors = split is not None
-    count = exported if onboard is None else onboard
+    sweep's `eval.sectors`) also on the same sector-restricted masks."""
     network, params = init_params(CFG, seed=3)
-    export.export(dataclasses.replace(CFG, radio=dataclasses.replace(
-        CFG.radio, sector_split=split or "angle", sector_count=exported)), params, tmp_path)
-    dyn = sim.dyn.with_values(sector_area=split == "area", sector_count=count)
+    export.export(CFG, params, tmp_path)
+    dyn = sim.dyn
     seed = 4
     obs, state = sim.reset(keys_of(seed, 1)[0])
-    planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial), sectors=sectors,
-                                    sector_count=onboard) for i in range(3)]
+    planners = [OnboardPlanner.load(tmp_path, i, float(state.budget_initial), sectors=sectors)
+                for i in range(3)]
     assert all(p.mode == "policy" for p in planners)
     apply = jax.jit(jax.vmap(network.apply, in_axes=(None, 0, 0)))
     memory = {"flax": jnp.zeros((3, CFG.policy.width))}

@@ -122,10 +122,7 @@ def test_eval_cell_prints_the_ratio_of_its_own_figures_and_draws_the_curves(tmp_
                            "--radio-range", "0.3", "--envs", "1", "--repeats", "1", "--eval",
                            "--worlds", "2", "--policy", str(SCRIPT.parents[1] / "pretrained" /
                                                             "default"),
-                           "--figure", str(figure),
-                           # more shared sectors than the smallest timed team has robots:
-                           # the timing steps without the rule, the N = 3 cell keeps it
-                           "eval.sectors=true", "radio.sector_count=3"],
+                           "--figure", str(figure), "eval.sectors=true"],
                           capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr
     lines = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}

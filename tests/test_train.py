@@ -20,7 +20,7 @@ from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
 from jaxmripp.parallel.mesh import data_parallel
-from jaxmripp.spec import layout, sectors as sectors_spec
+from jaxmripp.spec import layout
 
 @pytest.fixture(scope="module")
 def cfg():
@@ -399,34 +399,3 @@ def test_two_processes_give_the_one_device_parameters(cfg, full_run, tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == [cfg.train.name]  # one folder for both
     assert len(trainmod.read_metrics(tmp_path / cfg.train.name)) == cfg.train.updates
     assert _leaves_equal(_final_params(cfg, tmp_path / cfg.train.name), full_run[1].params)
-
-
-@pytest.mark.slow
-def test_training_rollouts_keep_to_sectors():
-    """train.sectors: at a short range every robot samples from the sector rule's mask
-    (offering nothing outside its sector while its own has unknown views), which the plain
-    rollout does not."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["train.sectors=true", "train.rollout_steps=6"])
-    trainer = trainmod.Trainer.build(cfg)
-    dyn = DynamicParams.from_config(cfg)
-    params = trainer.init().params
-
-    @jax.jit
-    def run(dyn):
-        runner = ppo.start_runner(jax.random.PRNGKey(0), cfg, trainer.env_params, dyn)
-        return ppo.rollout(jax.random.PRNGKey(1), runner, params, trainer.network, cfg,
-                           trainer.env_params, dyn)[1]
-
-    def rollout(radio_range):
-        t = jax.tree.map(np.asarray, run(dyn.with_values(radio_range=radio_range)))
-        # Positions as the features give them, so the check is the rule's, not the code's.
-        position = t.obs.features[..., [layout.FEATURES.index(c) for c in "xyz"]]
-        own = sectors_spec.own_sector(position, np.asarray(dyn.start), np.arange(2)[:, None], 2)
-        kept = sectors_spec.sector_mask(t.obs.mask, t.obs.features, own)
-        chosen = np.take_along_axis(t.obs.mask, t.action[..., None], -1)[..., 0]
-        return np.all(kept == t.obs.mask, axis=-1) | ~t.active, chosen | ~t.active
-
-    in_rule, chosen_offered = rollout(0.1)
-    assert in_rule.all() and chosen_offered.all()
-    in_rule, _ = rollout(np.inf)  # a radio reaching the whole world: no sectors
-    assert not in_rule.all()

@@ -28,6 +28,9 @@ _MAX_BASE_DEPTH = 8  # `base` presets nested deeper than this are refused (cycle
 REMOVED: dict[str, Any] = {
     "train.radio_ranges": [],
     "radio.map_reach": "radio",
+    "radio.sector_split": "angle",
+    "radio.sector_count": 0,
+    "train.sectors": False,
 }
 
 

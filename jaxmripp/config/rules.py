@@ -13,7 +13,6 @@ from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
 from jaxmripp.spec import feeding
 from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
-from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -124,8 +123,6 @@ RULES: dict[str, tuple] = {
     "ppo.teacher_updates": _NONNEG,
     "ppo.teacher": _choice("nbv", "nbv_ahead", "oracle"),
     "ppo.teacher_facade": _NONNEG,
-    "radio.sector_split": _choice(*SECTOR_SPLITS),
-    "radio.sector_count": _range(0, 256),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),
@@ -211,7 +208,6 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
     problems += _pad_checks(cfg)
-    problems += _sector_checks(cfg)
     if cfg.policy.view_prior > 0 and not cfg.policy.view_features:
         problems.append(("policy.view_prior", cfg.policy.view_prior,
                          "0 while policy.view_features is false (the prior reads them)"))
@@ -282,19 +278,6 @@ def _pad_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         return [("robots.pad_spacing", spacing,
                  f"at most {(1.0 - max(x, z)) / (side - 1):.4g} so that {n} pads in a "
                  f"{side}-wide grid from robots.start fit in the unit cube")]
-    return []
-
-
-def _sector_checks(cfg: Config) -> list[tuple[str, Any, str]]:
-    """Every robot team that keeps to sectors must have a robot for each of them."""
-    teams = ([cfg.robots.count] if cfg.train.sectors else []) + (
-        list(cfg.eval.team_sizes) if cfg.eval.sectors else [])
-    count = cfg.radio.sector_count
-    if count and teams and count > min(teams):
-        return [("radio.sector_count", count,
-                 f"0 (one sector per robot) or at most the smallest team that keeps to "
-                 f"sectors ({min(teams)} robots; robots.count with train.sectors, "
-                 f"eval.team_sizes with eval.sectors)")]
     return []
 
 

@@ -74,12 +74,6 @@ class RadioConfig:
     relay: bool = False  # forward everything known (multi-hop) instead of single hop
     share_maps: bool = True  # robots in range merge their maps (jaxmripp.spec.sharing)
     collision_distance: float = 0.05  # d_c
-    # how eval.sectors / train.sectors divide the world: angle (equal azimuth spans) or
-    # area (equal ground areas; jaxmripp.spec.sectors)
-    sector_split: str = "angle"
-    # how many sectors: 0 one per robot (robot i the i-th), K >= 1 K sectors that the
-    # robots share in order of their pads' distance from the first pad
-    sector_count: int = 0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -214,9 +208,6 @@ class TrainConfig:
     # continue a policy trained with fewer robots; one trained without the view prior
     # gets it at weight policy.view_prior. "" = random initialisation.
     init_from: str = ""
-    # Robots keep to their sectors while the radio range is short (jaxmripp.spec.sectors),
-    # in training rollouts as eval.sectors does in sweeps.
-    sectors: bool = False
     keep_checkpoints: int = 3
     # Where every update's metrics go (jaxmripp.learn.metrics): jsonl (metrics.jsonl),
     # tensorboard (event files in tensorboard/), wandb (Weights & Biases, offline unless

@@ -25,7 +25,7 @@ from flax import struct
 from jaxmripp.sim import claims, env as envmod, lookahead, oracle, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
-from jaxmripp.sim.observation import Observation, in_sectors
+from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
 from jaxmripp.parallel.blocks import map_blocks, sum_blocks
 from jaxmripp.parallel.mesh import DataParallel
@@ -193,8 +193,6 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
         offered = critic_inputs(cfg, runner.obs, runner.env_state)
-        if cfg.train.sectors:
-            offered = jax.vmap(in_sectors, in_axes=(0, 0, None))(offered, runner.env_state, dyn)
         if cfg.policy.claims:
             memory, action, log_prob, value, decided = act_in_turn(
                 network, net_params, runner.memory, offered, act_keys, runner.env_state,

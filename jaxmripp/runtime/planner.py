@@ -96,7 +96,6 @@ class OnboardPlanner(RadioExchange):
         max_steps: int | None = None,
         seed: int | None = None,
         sectors: bool = False,
-        sector_count: int | None = None,
         team_key: bytes | None = None,
     ):
         """spec: from the export header; budget: this robot's share of the team budget;
@@ -108,8 +107,7 @@ class OnboardPlanner(RadioExchange):
         export's); seed: candidate sampling (default: id); sectors: keep to this robot's
         sector of the world, seen from the team's first pad `spec.start`, while it has
         unknown views there, if the radio range is short enough for the rule
-        (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps); sector_count:
-        its `radio.sector_count` (default: the export's; with sectors only); team_key: the
+        (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps); team_key: the
         team's secret (bytes, `jaxmripp.runtime.auth`): every message is then signed and
         only messages signed with it are taken (`rejected_messages` counts the others).
         The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
@@ -118,8 +116,6 @@ class OnboardPlanner(RadioExchange):
         mode = mode or ("policy" if policy is not None else "greedy")
         validation.settings(mode, policy is not None, robot_id, team_size, budget,
                             spec.flight, spec.priority)
-        self.sector_count = validation.sector_count(sector_count, spec.sector_count, sectors,
-                                                    team_size)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size
@@ -260,9 +256,7 @@ class OnboardPlanner(RadioExchange):
         mask = c.valid & safe & (not done)
         if self.sectors and sectors_spec.applies(self.spec.radio_range):
             mask = sectors_spec.offered(mask, features, c.position,
-                                        np.asarray(self.spec.start, F32), self.id, self.team_size,
-                                        equal_area=self.spec.sector_split == "area",
-                                        count=self.sector_count)
+                                        np.asarray(self.spec.start, F32), self.id, self.team_size)
         scores = self._scores(mode, features, mask, robot_state, tie_break)
 
         if not mask.any():

@@ -15,7 +15,6 @@ from jaxmripp.runtime.view import GainModel
 from jaxmripp.spec.feeding import UNCAPPED
 from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import features
-from jaxmripp.spec.sectors import SPLITS as SECTOR_SPLITS
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -35,6 +34,8 @@ class GPSpec:
 # in: a header written before their removal holds them, and is refused at any other value.
 REMOVED = {
     ("radio", "map_reach"): "radio",
+    ("radio", "sector_split"): "angle",
+    ("radio", "sector_count"): 0,
 }
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
@@ -80,8 +81,6 @@ class RuntimeSpec:
     # sensor.gain_facade; jaxmripp.spec.view).
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
-    sector_split: str = "angle"  # radio.sector_split (jaxmripp.spec.sectors)
-    sector_count: int = 0  # radio.sector_count (jaxmripp.spec.sectors)
     # The target belief (jaxmripp.spec.belief): whether the policy reads its columns, the
     # prior strength k (policy.belief_strength) and the prior rate m of the trained world.
     belief_features: bool = False
@@ -173,9 +172,6 @@ class RuntimeSpec:
             relay=get("radio", "relay", bool),
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
-            sector_split=choice("radio", "sector_split", SECTOR_SPLITS, default="angle"),
-            sector_count=_sector_count(get("radio", "sector_count", int, default=0),
-                                       get("robots", "count", int)),
             gp=GPSpec(**{name: get("gp", name, kind, _GP_DEFAULTS.get(name))
                          for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
@@ -187,14 +183,6 @@ class RuntimeSpec:
             escape=get("safety", "escape", bool, default=False),
             **ahead,
         )
-
-
-def _sector_count(value: int, team: int) -> int:
-    """radio.sector_count as the sector rule needs it: a robot for every sector."""
-    if not 0 <= value <= team:
-        raise WeightsFormatError(f"export header: config.radio.sector_count is {value}; "
-                                 f"allowed: 0 (one sector per robot) to robots.count = {team}")
-    return value
 
 
 def header_field(mapping, key, kind, prefix=""):

@@ -21,26 +21,6 @@ F32 = np.float32
 MODES = ("policy", "greedy", "nbv", "random")
 
 
-def sector_count(given: int | None, exported: int, sectors: bool, team_size: int) -> int:
-    """The sector count the planner keeps to (`jaxmripp.spec.sectors`; 0 with sectors
-    off): `given` (the constructor's sector_count) or else the export's; every sector
-    needs a robot (ValueError names the argument)."""
-    if given is not None and not sectors:
-        raise ValueError(f"sector_count: got {given}; it needs sectors=True")
-    if not sectors:
-        return 0
-    if given is None:
-        if exported > team_size:
-            raise ValueError(f"team_size: got {team_size}; the export's radio.sector_count = "
-                             f"{exported} needs at least {exported} robots with sectors=True")
-        return exported
-    if isinstance(given, bool) or not isinstance(given, (int, np.integer)) or not (
-            0 <= given <= team_size):
-        raise ValueError(f"sector_count: got {given!r}; allowed: an integer 0 .. {team_size} "
-                         "(0: one sector per robot; at most a sector per robot of the team)")
-    return int(given)
-
-
 def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget: float,
              flight: str, priority: str) -> None:
     """The planner's constructor arguments and the spec's safety rules (ValueError names

@@ -155,6 +155,5 @@ def in_sectors(obs, state, dyn):
     applied to their masks (where it applies at dyn.radio_range)."""
     n = obs.mask.shape[0]
     mask = sectors_spec.offered(obs.mask, obs.features, state.candidates.position, dyn.start,
-                                jnp.arange(n)[:, None], n, xp=jnp,
-                                equal_area=dyn.sector_area > 0, count=dyn.sector_count)
+                                jnp.arange(n)[:, None], n, xp=jnp)
     return obs.replace(mask=jnp.where(sectors_spec.applies(dyn.radio_range), mask, obs.mask))

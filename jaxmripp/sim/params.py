@@ -113,10 +113,6 @@ class DynamicParams:
     turn_cost:          ()   budget charged when a move changes the heading
     start:              (3,) the first take-off pad
     pad_spacing:        ()   the distance between take-off pads (jaxmripp.spec.flight)
-    sector_area:        ()   1: the sector rule splits the world into equal areas
-                             (radio.sector_split = area), 0: into equal azimuth spans
-    sector_count:       ()   radio.sector_count: K sectors shared by pad rank, 0: one per
-                             robot (jaxmripp.spec.sectors)
     alpha, beta, gamma: ()   reward weights of r_e (utility GP trace drop), r_u (new
                              windows) and r_c (communication GP trace drop)
     team_share:         ()   the share of r_u paid from the team's new windows since the
@@ -130,8 +126,6 @@ class DynamicParams:
     turn_cost: jax.Array
     start: jax.Array
     pad_spacing: jax.Array
-    sector_area: jax.Array
-    sector_count: jax.Array
     alpha: jax.Array
     beta: jax.Array
     gamma: jax.Array
@@ -148,8 +142,7 @@ class DynamicParams:
         return cls.create(
             radio_range=cfg.radio.range, collision_distance=cfg.radio.collision_distance,
             budget=cfg.robots.budget, turn_cost=cfg.robots.turn_cost, start=cfg.robots.start,
-            pad_spacing=cfg.robots.pad_spacing, sector_area=cfg.radio.sector_split == "area",
-            sector_count=cfg.radio.sector_count,
+            pad_spacing=cfg.robots.pad_spacing,
             alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
             team_share=cfg.reward.team_share, utility_norm=cfg.reward.utility_norm)
 
