@@ -526,38 +526,6 @@ def test_tiny_scene_rewards_by_hand(fns, rollout, window_poses):
                                + r.gamma * info.reward_communication, rtol=1e-6)
 
 
-def test_team_share_pays_what_the_team_found_since_each_robots_last_move(fns, rollout,
-                                                                          window_poses):
-    """reward.team_share = s: a moving robot gets (1 - s) of its own split of new windows
-    plus s / N of every window the team found since its last move; a robot that does not
-    move gets nothing now and carries the count to its next move."""
-    pos, head, seen = window_poses
-    _, state, *_ = rollout[0]
-    far = np.linalg.norm(pos - pos[0], axis=1) > 0.2
-    other = int(np.argmax(far))
-    scene = teleport(state, np.stack([pos[0], pos[other], pos[other]]),
-                     (np.array([head[0], head[other], head[other]]) + 2) % 4,
-                     [head[0], head[other], head[other]])
-    # Robot 2 is out of the episode this step; earlier finds are waiting for 0 and 2.
-    scene = scene.replace(done=jnp.array([False, False, True]),
-                          team_found=jnp.array([2.0, 0.0, 5.0], jnp.float32))
-    share = 0.25
-    dyn = D0.with_values(collision_distance=-1.0, team_share=share)
-    _, after, _, _, info = fns.traced.step(jax.random.key(1), scene,
-                                           jnp.zeros((N,), jnp.int32), dyn)
-    before, after, info = to_np(scene), to_np(after), to_np(info)
-    np.testing.assert_array_equal(info.acted, [True, True, False])
-    new = np.stack([seen[0], seen[other]]) & ~before.discovered
-    n_new = (new[0] | new[1]).sum()
-    assert n_new == after.discovered.sum() - before.discovered.sum() and n_new > 0
-    own = np.array([(new[0] & ~new[1]).sum() + (new[0] & new[1]).sum() / 2,
-                    (new[1] & ~new[0]).sum() + (new[0] & new[1]).sum() / 2, 0.0])
-    pooled = np.array([(2.0 + n_new) / N, n_new / N, 0.0])
-    np.testing.assert_allclose(info.reward_discovery, (1 - share) * own + share * pooled,
-                               atol=1e-6)
-    np.testing.assert_allclose(after.team_found, [0.0, 0.0, 5.0 + n_new])
-
-
 # ---------------------------------------------------------------------------------------
 # Robot collisions: closest approach of the actual flights, once per pair and step
 

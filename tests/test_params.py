@@ -16,7 +16,7 @@ CFG = config.load(ROOT / "configs" / "smoke.yaml", [
     "radio.range=.inf", "radio.collision_distance=0.07", "robots.pad_spacing=0.08",
     "robots.budget=[3.0, 5.0]",
     "robots.turn_cost=0.03", "robots.start=[0.1, 0.2, 0.3]", "reward.alpha=7.5",
-    "reward.beta=0.25", "reward.gamma=1.5", "reward.team_share=0.3",
+    "reward.beta=0.25", "reward.gamma=1.5",
     "reward.utility_norm=10.0"])
 
 
@@ -24,8 +24,7 @@ def test_dynamic_values_come_from_the_config_as_float32():
     d = DynamicParams.from_config(CFG)
     expected = dict(radio_range=math.inf, collision_distance=0.07, budget=[3.0, 5.0],
                     turn_cost=0.03, start=[0.1, 0.2, 0.3], pad_spacing=0.08, alpha=7.5,
-                    beta=0.25, gamma=1.5, team_share=0.3,
-                    utility_norm=10.0)
+                    beta=0.25, gamma=1.5, utility_norm=10.0)
     for name, value in expected.items():
         leaf = getattr(d, name)
         assert leaf.dtype == jnp.float32 and not leaf.weak_type, name

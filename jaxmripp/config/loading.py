@@ -31,6 +31,7 @@ REMOVED: dict[str, Any] = {
     "radio.sector_split": "angle",
     "radio.sector_count": 0,
     "train.sectors": False,
+    "reward.team_share": 0.0,
 }
 
 

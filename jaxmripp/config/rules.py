@@ -95,7 +95,6 @@ RULES: dict[str, tuple] = {
     "reward.alpha": _NONNEG,
     "reward.beta": _NONNEG,
     "reward.gamma": _NONNEG,
-    "reward.team_share": _range(0, 1),
     "reward.utility_norm": _POSITIVE,
     "episode.max_steps": _range(1, 4096),
     "policy.width": _range(4, 4096),

@@ -121,9 +121,6 @@ class RewardConfig:
     alpha: float = 20.0  # exploration (utility GP trace drop)
     beta: float = 0.02  # per newly discovered target
     gamma: float = 1.0  # communication GP trace drop
-    # Share of r_u paid from the team's new windows rather than the robot's own (0: the
-    # paper's individual reward, 1: every window credited to all N robots alike).
-    team_share: float = 0.0
     utility_norm: float = 16.0
 
 

@@ -62,7 +62,6 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         comm_gp=batched(empty_gp, n),
         candidates=None,
         step=jnp.zeros((), jnp.int32),
-        team_found=jnp.zeros((n,), jnp.float32),
         metrics=Metrics.zeros(n),
     )
     if params.safety.takeoff_scan:
@@ -186,12 +185,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     fresh = seen & ~state.discovered[None]
     finders = fresh.sum(axis=0)  # (T,) robots that found each window at this step
     new_windows = finders > 0
-    # reward.team_share pays part of r_u from what the whole team found since the robot's
-    # last move, so a robot gains nothing by taking a window a peer would have found.
-    team_found = state.team_found + new_windows.sum()
-    reward_discovery = (1.0 - dyn.team_share) * (fresh / jnp.maximum(finders, 1)).sum(axis=1) \
-        + dyn.team_share * jnp.where(moved, team_found / n, 0.0)
-    team_found = jnp.where(moved, 0.0, team_found)
+    reward_discovery = (fresh / jnp.maximum(finders, 1)).sum(axis=1)  # split among finders
     discovered = state.discovered | new_windows
 
     utility = jax.vmap(sensing.utility)(casts).astype(jnp.float32) / dyn.utility_norm
@@ -210,7 +204,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     if params.radio.share_maps:
         team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
     state = state.replace(team_map=team_map, building_top=top, heard=contact,
-                          discovered=discovered, team_found=team_found, history_pose=history_pose,
+                          discovered=discovered, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(
                               contacts=state.metrics.contacts + contact.sum() // 2))

@@ -115,8 +115,6 @@ class DynamicParams:
     pad_spacing:        ()   the distance between take-off pads (jaxmripp.spec.flight)
     alpha, beta, gamma: ()   reward weights of r_e (utility GP trace drop), r_u (new
                              windows) and r_c (communication GP trace drop)
-    team_share:         ()   the share of r_u paid from the team's new windows since the
-                             robot's last move (split over the N robots) instead of its own
     utility_norm:       ()   windows seen per pose are divided by it before entering a GP
     """
 
@@ -129,7 +127,6 @@ class DynamicParams:
     alpha: jax.Array
     beta: jax.Array
     gamma: jax.Array
-    team_share: jax.Array
     utility_norm: jax.Array
 
     @classmethod
@@ -144,7 +141,7 @@ class DynamicParams:
             budget=cfg.robots.budget, turn_cost=cfg.robots.turn_cost, start=cfg.robots.start,
             pad_spacing=cfg.robots.pad_spacing,
             alpha=cfg.reward.alpha, beta=cfg.reward.beta, gamma=cfg.reward.gamma,
-            team_share=cfg.reward.team_share, utility_norm=cfg.reward.utility_norm)
+            utility_norm=cfg.reward.utility_norm)
 
     def with_values(self, **values) -> "DynamicParams":
         """A copy with some fields set from plain numbers, cast like `create` (a Python

@@ -53,7 +53,6 @@ class EnvState:
     comm_gp: gp.GPState  # leading axis N
     candidates: cands.Candidates  # (N, L) the poses the current observation offers
     step: jax.Array  # () int32
-    team_found: jax.Array  # (N,) float32 windows the team found since the robot last moved
     metrics: Metrics
 
     @property
