@@ -73,11 +73,6 @@ def export(cfg: Config, params, out_dir: str | Path, source: dict | None = None
            ) -> tuple[Path, Path]:
     """Writes out_dir/policy.npz and out_dir/policy.json for Flax `params` (after
     `check_layout`; raises ExportError and writes nothing on a mismatch)."""
-    if cfg.policy.claims:
-        # The onboard protocol announces intents after deciding; deciding in turn needs the
-        # intents of lower-id peers before, which the runtime does not implement.
-        raise ExportError("policy.claims: the NumPy runtime does not decide in turn; export "
-                          "a policy trained with policy.claims=false")
     weights = policymod.flatten_params(params)
     head = header(cfg, source)
     check_layout(head, weights)

@@ -81,22 +81,13 @@ def initial_params(cfg: Config):
         raise cfgmod.ConfigError(f"train.init_from: {err}") from None
 
 
-def trained_planner(cfg: Config, run_dir: Path, best: bool = False,
-                    sweep: Config | None = None):
+def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
     """A deterministic policy planner from a training run's checkpoint or from a shipped
-    export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config,
-    deployed as the `sweep` config says (default `cfg`): a policy decides in turn where it
-    was trained so or the sweep sets `policy.claims` (the same network, choosing on view
-    gains without its peers' claims), and hears claims as the sweep's radio.relay says."""
-    sweep = cfg if sweep is None else sweep
-    trainer = trainmod.Trainer.build(cfg)
-    in_turn = ((cfg.sensor, cfg.candidates.shell[1], sweep.radio.relay)
-               if cfg.policy.claims or sweep.policy.claims else None)
-    network = trainer.network
+    export (a folder with policy.npz, e.g. pretrained/default), `cfg` its config."""
+    network = trainmod.Trainer.build(cfg).network
     if cfg.ppo.privileged_critic:  # the critic's training-only inputs, unknown here
         network = privileged.ZeroFilled(network, cfg.robots.count)
-    return policy_planner(network, trained_params(run_dir, cfg, best), cfg.policy.width,
-                          in_turn=in_turn)
+    return policy_planner(network, trained_params(run_dir, cfg, best), cfg.policy.width)
 
 
 AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight", "belief_features",
@@ -136,7 +127,7 @@ def sweep_planner(run_dir: Path, sweep: Config, name: str = "policy", best: bool
             f"{name} reads the lookahead input {AHEAD_FIELDS} = {policy_inputs(cfg)}, the "
             f"sweep builds {policy_inputs(sweep)}; allowed: the same "
             "(pipeline.with_policy_inputs)")
-    planner = trained_planner(cfg, run_dir, best, sweep=sweep)._replace(name=name)
+    planner = trained_planner(cfg, run_dir, best)._replace(name=name)
     for note in policy_mismatches(cfg, sweep):  # once the policy has loaded
         log(f"note: {name} was trained with {note}")
     return planner

@@ -280,7 +280,6 @@ def test_belief_input_is_off_by_default_and_appends_two_columns():
 
 
 @pytest.mark.parametrize("overrides,key", [
-    ({"policy": {"belief_features": True, "claims": True}}, "policy.belief_features"),
     ({"eval": {"planners": ["nbv_targets"]}, "world": {"clearance": 0,
                                                         "target_placement": "footprint"},
       "sensor": {"model": "frustum"}}, "world.clearance"),

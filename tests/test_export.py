@@ -141,14 +141,6 @@ def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_pa
     assert not (tmp_path / "out").exists()
 
 
-def test_a_policy_that_decides_in_turn_is_refused_in_one_line(flat_params, tmp_path):
-    params, _ = flat_params
-    in_turn = cfgmod.from_dict({"policy": {"claims": True}}, CFG)
-    with pytest.raises(export.ExportError, match="policy.claims") as err:
-        export.export(in_turn, params, tmp_path / "out")
-    assert "\n" not in str(err.value) and not (tmp_path / "out").exists()
-
-
 # ---------------------------------------------------------------------------------------
 # The command line: python -m jaxmripp.export RUN_DIR [--best] [--out DIR]
 

@@ -43,19 +43,3 @@ def test_report_writes_its_files_and_a_row_per_planner(tmp_path):
         assert 0.0 <= means[name] <= 100.0
         assert np.isclose(summary[name]["mean"], means[name])
         assert f"| {name} | {means[name]:.2f} +- " in table
-
-
-def test_a_sweep_with_claims_deploys_any_policy_in_turn(monkeypatch):
-    """`policy.claims` in the sweep's config makes a policy trained without it decide in
-    turn, hearing claims as the sweep's radio.relay says; without it the policy decides
-    at once."""
-    shipped = ROOT / "pretrained" / "default"
-    cfg = config.load(shipped / "config.yaml")
-    assert not cfg.policy.claims
-    built = []
-    monkeypatch.setattr(pipeline, "policy_planner",
-                        lambda *args, in_turn=None, **kwargs: built.append(in_turn))
-    pipeline.trained_planner(cfg, shipped)
-    pipeline.trained_planner(cfg, shipped, sweep=config.load(
-        shipped / "config.yaml", ["policy.claims=true", "radio.relay=true"]))
-    assert built == [None, (cfg.sensor, cfg.candidates.shell[1], True)]

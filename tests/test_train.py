@@ -15,7 +15,6 @@ from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
 from jaxmripp.learn.policy import VIEW_PRIOR_PARAM
-from jaxmripp.sim import env as envmod, maps
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
@@ -136,36 +135,6 @@ def test_init_from_a_policy_without_the_view_prior_adds_it_at_its_weight(cfg, fu
     started = trainmod.Trainer.build(prior).init_from(state.params, "run").params
     assert float(started["params"].pop(VIEW_PRIOR_PARAM)) == 4.0
     assert _leaves_equal(started, state.params)
-
-
-def test_deciding_in_turn_records_the_observations_each_robot_decided_on(cfg, trainer):
-    """With policy.claims the rollout stores, for each robot, the observation it sampled
-    from: rescoring the stored observations gives back the sampled log-probabilities."""
-    envs, robots = cfg.train.envs, cfg.robots.count
-    keys = jax.random.split(jax.random.PRNGKey(5), envs)
-    # Jitted: dispatching the vmapped reset and observation op by op costs more than compiling.
-    reset = jax.jit(jax.vmap(envmod.reset, in_axes=(0, None, None)), static_argnums=1)
-    obs, states = reset(keys, trainer.env_params, DynamicParams.from_config(cfg))
-    # Every robot hears every other and has a copy of robot 0's map and candidates, so
-    # robot 1 sees robot 0's view claimed.
-    twin = lambda x: x.at[:, 1:].set(x[:, :1])  # noqa: E731
-    states = states.replace(heard=jnp.ones_like(states.heard),
-                            team_map=maps.pack(twin(states.occupancy), maps.buildings(states.team_map)),
-                            building_top=twin(states.building_top),
-                            candidates=jax.tree.map(twin, states.candidates))
-    obs = jax.jit(jax.vmap(envmod.observe, in_axes=(0, None)), static_argnums=1)(
-        states, trainer.env_params)
-    params = trainer.init().params
-    memory = jnp.zeros((envs, robots, cfg.policy.width))
-    act = jax.jit(lambda obs, states: ppo.act_in_turn(
-        trainer.network, params, memory, obs, keys, states, trainer.env_params,
-        cfg.train.blocks))
-    _, action, log_prob, _, decided = act(obs, states)
-    np.testing.assert_array_equal(decided.features[:, 0], obs.features[:, 0])
-    assert not np.array_equal(decided.features[:, 1], obs.features[:, 1])
-    _, logits, _ = ppo.apply_batched(trainer.network, params, memory, decided)
-    rescored = ppo.distribution(logits, decided.mask).log_prob(action)
-    np.testing.assert_allclose(rescored, log_prob, rtol=1e-5, atol=1e-5)
 
 
 def _random_observations(key, trainer, batch):

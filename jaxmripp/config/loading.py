@@ -32,6 +32,7 @@ REMOVED: dict[str, Any] = {
     "radio.sector_count": 0,
     "train.sectors": False,
     "reward.team_share": 0.0,
+    "policy.claims": False,
 }
 
 

@@ -234,10 +234,6 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("world.clearance", cfg.world.clearance,
                          "at least 1 with the target belief (policy.belief_features, "
                          "nbv_targets, oracle_rate: buildings must not touch)"))
-    if cfg.policy.belief_features and cfg.policy.claims:
-        problems.append(("policy.belief_features", True,
-                         "false while policy.claims is true (deciding in turn recomputes "
-                         "the view columns only)"))
     if cfg.policy.ahead_branches > cfg.candidates.count:
         problems.append(("policy.ahead_branches", cfg.policy.ahead_branches,
                          f"0 (no lookahead input) to the candidate count 4 x "

@@ -139,9 +139,6 @@ class PolicyConfig:
     view_features: bool = True  # False: ablation without the view-gain inputs
     intent_features: bool = True  # False: ablation without the peer-distance input
     view_prior: float = 0.0  # > 0: next-best-view logit prior of this initial weight
-    # True: robots decide in turn and each sees its view gain without the views its peers
-    # just claimed (jaxmripp.sim.claims), as the nbv_team baseline does
-    claims: bool = False
     # > 0: one more input, the two-flight lookahead value of the robot's this many best
     # candidates (`ahead_rate`, jaxmripp.spec.layout), with these discount and facade weight
     ahead_branches: int = 0
@@ -173,7 +170,7 @@ class PPOConfig:
     max_grad_norm: float = 0.5
     # > 0: kickstarting: the loss adds this weight x the cross-entropy from the
     # next-best-view choice (jaxmripp.spec.layout.nbv_score with teacher_facade) on
-    # the observation each robot decided on: nbv_team's choice with policy.claims
+    # the observation each robot decided on
     teacher_coef: float = 0.0
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
     # whose choices: nbv (the score on the observation, as above), nbv_ahead (that

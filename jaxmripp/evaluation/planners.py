@@ -4,35 +4,23 @@ from __future__ import annotations
 
 import jax.numpy as jnp
 
-from jaxmripp.config import Config, SensorConfig
+from jaxmripp.config import Config
 from jaxmripp.evaluation import baselines
-from jaxmripp.sim import claims
 from jaxmripp.sim.episode import Planner
 from jaxmripp.sim.observation import in_sectors
 from jaxmripp.sim.params import EnvParams
 
 
-def policy_planner(network, params, width: int, name: str = "policy",
-                   in_turn: tuple[SensorConfig, float, bool] | None = None) -> Planner:
-    """The trained policy at deployment: each robot takes its most probable candidate.
-    With `in_turn` = (sensor, shell[1], relay) (a policy trained with `policy.claims`)
-    robots decide in index order on the views their peers left unclaimed."""
+def policy_planner(network, params, width: int, name: str = "policy") -> Planner:
+    """The trained policy at deployment: each robot takes its most probable candidate."""
     from jaxmripp.learn.ppo import apply_batched  # noqa: PLC0415 (ppo imports the env)
 
     def init(n_robots):
         return jnp.zeros((n_robots, width), jnp.float32)
 
     def act(key, memory, obs, state=None, dyn=None):
-        if in_turn is None:
-            memory, logits, _ = apply_batched(network, params, memory, obs)
-            return memory, baselines.masked_argmax(logits, obs.mask)
-
-        def decide(i, mine, occupancy):
-            new_memory, logits, _ = network.apply(params, memory[i], mine)
-            return baselines.masked_argmax(logits, mine.mask), new_memory
-
-        _, actions, memory = claims.in_turn(decide, obs, state, *in_turn)
-        return memory, actions
+        memory, logits, _ = apply_batched(network, params, memory, obs)
+        return memory, baselines.masked_argmax(logits, obs.mask)
 
     return Planner(name, init, act)
 

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import claims, env as envmod, lookahead, oracle, privileged
+from jaxmripp.sim import env as envmod, lookahead, oracle, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -127,32 +127,6 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 
 
-def act_in_turn(network: ActorCritic, params, memory, obs: Observation, keys,
-                env_state: envmod.EnvState, env_params: EnvParams, blocks: int,
-                data: DataParallel | None = None):
-    """`act` with the robots of each environment deciding in index order on the views
-    their peers left unclaimed (`jaxmripp.sim.claims`); robot i samples with
-    fold_in(its environment's key, i). Also returns the observations decided on (E, N, ...),
-    which are what the update must score."""
-
-    def one_environment(memory, obs, key, state, params):
-        def decide(i, mine, occupancy):
-            new_memory, logits, value = network.apply(params, memory[i], mine)
-            dist = distribution(logits, mine.mask)
-            action = jax.random.categorical(jax.random.fold_in(key, i), dist.logits)
-            return action, (new_memory, dist.log_prob(action), value)
-
-        decided, action, (memory, log_prob, value) = claims.in_turn(
-            decide, obs, state, env_params.sensor, env_params.candidates.shell[1],
-            env_params.radio.relay)
-        return memory, action, log_prob, value, decided
-
-    def block(inputs, params):
-        return jax.vmap(one_environment, in_axes=(0, 0, 0, 0, None))(*inputs, params)
-
-    return map_blocks(block, (memory, obs, keys, env_state), params, blocks, data)
-
-
 def values(network: ActorCritic, params, memory, obs: Observation, blocks: int,
            data: DataParallel | None = None):
     """The critic's values (E, N), block by block like `act`."""
@@ -193,14 +167,8 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
         offered = critic_inputs(cfg, runner.obs, runner.env_state)
-        if cfg.policy.claims:
-            memory, action, log_prob, value, decided = act_in_turn(
-                network, net_params, runner.memory, offered, act_keys, runner.env_state,
-                params, cfg.train.blocks, data)
-        else:
-            memory, action, log_prob, value = act(network, net_params, runner.memory,
-                                                  offered, act_keys, cfg.train.blocks, data)
-            decided = offered
+        memory, action, log_prob, value = act(network, net_params, runner.memory,
+                                              offered, act_keys, cfg.train.blocks, data)
         active = jnp.any(runner.obs.mask, axis=-1)
         choice = None
         if teach is not None:
@@ -222,7 +190,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
                                     info.reward_communication]).reshape(3, -1),
             acted=info.acted.reshape(-1))
         ret = jnp.where(ended[:, None], 0.0, ret)
-        transition = Transition(decided, runner.memory, action, log_prob, value, reward,
+        transition = Transition(offered, runner.memory, action, log_prob, value, reward,
                                 terminal, active, choice)
         return (_split(Runner(state, obs, memory, ret), data), pool_used), (transition, stats)
 

@@ -51,11 +51,6 @@ the facade gain weighed by the robot's target belief, with prior strength
 runtime computes them from the windows its robot's classifier reports and those that
 arrive with the map deltas (`jaxmripp.runtime.belief`).
 
-DECIDING IN TURN (`policy.claims`): robots choose in index order, and robot i's four VIEW
-columns are computed on its map with the unknown samples in view of the chosen poses of
-the robots j < i it hears (each on robot j's map) set FREE (`jaxmripp.sim.claims`). The
-NumPy runtime does not implement it: such a policy is not exported.
-
 VIEW PRIOR (`policy.view_prior` w > 0): the policy adds a * g_i / max(max_j g_j, 1e-6) to
 candidate i's logit, g = the view_unknown_per_cost column with infeasible rows at 0 and a
 a learned scalar ("view_prior") that starts at w. Before training the policy's most
