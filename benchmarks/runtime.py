@@ -9,8 +9,8 @@ known": `sense` (map update, budget, history), building its radio message, decod
 storing the messages of the robots in range, with `radio.share_maps` the map round (its
 map deltas, merging the others'), `decide` (GP updates, candidate sampling, view gain,
 safety filter, features, policy forward pass), and the intent round (its intent message,
-decoding the others' and `resolve`). Robots start on their take-off pads and the first
-round senses all four headings (the take-off scan). The camera itself is not timed. The policy
+decoding the others' and `resolve`). Robots start on their take-off pads. The camera
+itself is not timed. The policy
 has random weights of the default shape (the cost does not depend on their values).
 
 Threads are pinned to one before NumPy loads; jax is never imported (checked at the end).
@@ -135,11 +135,6 @@ def episode(spec, policy, seed: int, mode: str):
     seconds, sizes, map_sizes = [], [], []
     for step in range(steps + 1):
         casts = [city.cast(position[i], heading[i]) for i in range(N)]  # the camera: untimed
-        if step == 0 and spec.takeoff_scan:  # the take-off scan sees all four headings
-            for i in range(N):
-                extra = [city.cast(position[i], (heading[i] + t) % 4) for t in (1, 2, 3)]
-                casts[i] = (np.concatenate([c[0] for c in extra] + [casts[i][0]]),
-                            np.concatenate([c[1] for c in extra] + [casts[i][1]]), casts[i][2])
         spent = np.zeros(N)
         outbox = []
         for i, planner in enumerate(planners):

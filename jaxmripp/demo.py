@@ -6,12 +6,11 @@
 
 The world and the ground-truth camera come from the JAX side (`jaxmripp.sim.world`,
 `jaxmripp.sim.sensing.cast`); the planners are the NumPy runtime alone. The robots start on
-their take-off pads (`jaxmripp.spec.flight`) and, with `safety.takeoff_scan`, first sense
-at all four headings. Each round every robot senses, broadcasts its message to the robots
+their take-off pads (`jaxmripp.spec.flight`). Each round every robot senses, broadcasts its message to the robots
 within radio range (JSON bytes, as on a real radio) and reads theirs; with
 `radio.share_maps` it then broadcasts its map deltas (`jaxmripp.spec.sharing`) and merges
 those sent to it; it decides, then broadcasts its intent, reads theirs and resolves (a
-lower-priority robot whose flight would come within d_c of another's holds); the demo
+robot whose flight would come within d_c of a lower-id robot's holds); the demo
 then flies each robot along its line of flight, stopping before a building (the
 traversal rule, as the env does), and prints the progress with the mean size of the
 round's map messages. It ends when every robot hovers or after the episode's step limit.
@@ -42,7 +41,7 @@ from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.errors import RuntimeInputError
 from jaxmripp.runtime.mapping import fly_until
 from jaxmripp.runtime.planner import MODES, OnboardPlanner
-from jaxmripp.spec.grid import HEADING_NAMES, N_HEADINGS, OCCUPIED
+from jaxmripp.spec.grid import HEADING_NAMES, OCCUPIED
 
 KINDS = ("waypoints", "map", "intents")  # the round's three broadcasts
 
@@ -169,14 +168,10 @@ def main(argv: list[str] | None = None, prog: str = "python -m jaxmripp.demo") -
         exchange(outbox, position, spec.radio_range, receive)
 
     for step in range(steps + 1):
-        # The take-off scan: the first sense sees the other three headings as well.
-        turns = range(N_HEADINGS) if step == 0 and spec.takeoff_scan else (0,)
-        casts = [cast(world, position, (heading + turn) % N_HEADINGS, cfg.sensor, size)
-                 for turn in reversed(turns)]  # the start heading last, as the env
-        voxels = np.concatenate([np.asarray(c.voxels) for c in casts], axis=1)
-        values = np.concatenate([np.asarray(c.values) for c in casts], axis=1)
-        seen = np.asarray(casts[-1].seen)
-        found |= np.any([np.asarray(c.seen).any(axis=0) for c in casts], axis=0)
+        view = cast(world, position, heading, cfg.sensor, size)
+        voxels, values = np.asarray(view.voxels), np.asarray(view.values)
+        seen = np.asarray(view.seen)
+        found |= seen.any(axis=0)
         path.append(position.copy())
         headings.append(heading.copy())
         start = time.perf_counter()

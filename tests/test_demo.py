@@ -35,8 +35,7 @@ def test_the_team_finds_more_than_its_take_off_views_and_flies_safe_on_a_signed_
     assert found, out
     assert float(found.group(1)) == pytest.approx(run.percent, abs=0.05)
     assert int(found.group(2)) == run.valid.sum() and int(found.group(3)) == run.steps >= 2
-    # A full turn on every pad (the take-off scan at its best) sees fewer windows than the
-    # team found by flying.
+    # A full turn on every pad sees fewer windows than the team found by flying.
     pads = run.path[0]
     at_pads = np.zeros_like(run.found)
     for turn in range(N_HEADINGS):

@@ -549,7 +549,7 @@ def place(state, starts, targets, done=(False,) * N):
 def test_robot_collisions_count_pairs_by_closest_approach(fns, rollout):
     """Hand-worked flights: each pair counts once per step when the closest approach of
     the two flights (one common speed) is below d_c, in range or out of range of the
-    radio; in range, the lower-priority robot of a conflicting pair holds."""
+    radio; in range, the higher-id robot of a conflicting pair holds."""
     _, state, *_ = rollout[0]
     actions = jnp.zeros((N,), jnp.int32)
     deaf = D0.with_values(radio_range=0.01)  # nobody hears anybody: no holds

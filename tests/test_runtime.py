@@ -31,7 +31,6 @@ from jaxmripp.runtime import candidates as np_candidates
 from jaxmripp.runtime import flight, messages, view, weights
 from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
-from jaxmripp.spec.flight import SCAN_TURNS
 
 REPO = Path(__file__).resolve().parents[1]
 CFG = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3"])
@@ -106,9 +105,7 @@ def test_layout_and_header_match_the_written_layout(exported):
     assert c["candidates"]["shell"] == list(CFG.candidates.shell)
     assert c["gp"]["capacity"] == CFG.gp.capacity and c["reward"]["utility_norm"] == 16.0
     assert c["robots"]["turn_cost"] == CFG.robots.turn_cost
-    assert c["safety"] == {"flight": CFG.safety.flight, "takeoff_scan": CFG.safety.takeoff_scan,
-                           "intents": CFG.safety.intents, "priority": CFG.safety.priority,
-                           "escape": CFG.safety.escape}
+    assert c["safety"] == {"flight": CFG.safety.flight, "escape": CFG.safety.escape}
     assert c["radio"]["share_maps"] is CFG.radio.share_maps is True
     assert c["sensor"]["fov_deg"] == CFG.sensor.fov_deg
     spec = spec_of()
@@ -421,8 +418,7 @@ def test_sense_charges_distance_and_turns_and_records_history():
     sense_free(planner, position=(0.5, 0.5, 0.5), heading=1, n_seen=3)
     d = planner.decide()
     planner.sense(d.position, d.heading, np.array([0, 27_000]), np.array([2, 0]), 5)
-    scan = SCAN_TURNS * spec.turn_cost * spec.takeoff_scan  # charged by the first sense
-    expected = 1.0 - scan - np.linalg.norm(d.position - np.float32([0.5, 0.5, 0.5])) \
+    expected = 1.0 - np.linalg.norm(d.position - np.float32([0.5, 0.5, 0.5])) \
         - (spec.turn_cost if d.heading != 1 else 0.0)
     assert planner.budget_left == pytest.approx(expected, abs=1e-6)
     assert planner.map.codes[0] == OCCUPIED  # index G^3 = 27000 means "not observed"

@@ -191,7 +191,7 @@ def test_a_forged_robot_0_neither_takes_priority_nor_changes_the_map(attacker_ke
     np.testing.assert_array_equal(keyed.map.codes, before)
     reason = "unsigned" if attacker_key is None else "forged"
     assert keyed.rejected_messages[reason] == 2
-    # The same messages to a robot without a key: robot 0 wins the priority, and the
+    # The same messages to a robot without a key: robot 0 goes first, and the
     # delta frees what robot 1 did not know (but none of what it saw OCCUPIED).
     open_radio = victim_robot(None)
     resolved, before = crowded_round(open_radio, None)

@@ -1,8 +1,7 @@
 """Whole episodes in the JAX env with every robot driven by the NumPy onboard runtime.
 
 Each robot's `OnboardPlanner` learns only what a real robot would: its own camera (the
-env's `sensing.cast` for that robot at its pose; at all four headings in the first round,
-the take-off scan), the radio messages of the robots within range (built by the runtime,
+env's `sensing.cast` for that robot at its pose), the radio messages of the robots within range (built by the runtime,
 delivered along the env's single-hop contacts: the first broadcast, the map deltas of
 `radio.share_maps`, then the intents) and whether its last move was blocked. Candidate
 poses are the env's (`state.candidates` of that robot), so the two sides choose among the
@@ -36,7 +35,7 @@ from jaxmripp.sim import comms, env as envmod, sensing
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner
-from jaxmripp.spec.grid import FREE, N_HEADINGS, OCCUPIED, UNKNOWN
+from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_flight import interval_reference
@@ -94,21 +93,15 @@ def jax_greedy_episode(sim, seed):
 
 
 def sense_all(sim, state, planners, blocked, t):
-    """Every robot senses (the take-off scan in round 0); budgets must be the env's (maps
-    too, after the map exchange: `share_maps`)."""
+    """Every robot senses; budgets must be the env's (maps too, after the map exchange:
+    `share_maps`)."""
     heading = np.asarray(state.heading)
-    scan = t == 0 and sim.spec.takeoff_scan
-    # The env's order: the other three headings, then the start heading's cast.
-    turns = (1, 2, 3, 0) if scan else (0,)
-    casts = [jax.tree.map(np.asarray, sim.cast(state.world, state.position,
-                                              jnp.asarray((heading + k) % N_HEADINGS)))
-             for k in turns]
+    cast = jax.tree.map(np.asarray, sim.cast(state.world, state.position, state.heading))
     position = np.asarray(state.position)
     for i, planner in enumerate(planners):
-        voxels = np.concatenate([c.voxels[i] for c in casts])
-        values = np.concatenate([c.values[i] for c in casts])
+        voxels, values = cast.voxels[i], cast.values[i]
         planner.sense(position[i], int(heading[i]), voxels, values,
-                      int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]),
+                      int(cast.seen[i].sum()), blocked=bool(blocked[i]),
                       windows=classified(state.world, voxels, values))
         assert planner.budget_left == pytest.approx(float(state.budget_left[i]), abs=1e-6)
 
@@ -308,14 +301,12 @@ def test_safety_filter_passes_exactly_what_the_rules_allow(sim, seed):
 
 
 @pytest.mark.slow  # the parity episodes already check every hold, round by round
-@pytest.mark.parametrize("priority", ["id", "budget"])
-def test_the_runtime_holds_exactly_the_robots_the_env_holds(priority):
-    """A crowded team: chosen flights conflict, and the lower-priority robot of each pair
-    in range holds. `runtime_episode` checks every round that the robots whose `resolve`
+def test_the_runtime_holds_exactly_the_robots_the_env_holds():
+    """A crowded team: chosen flights conflict, and the higher-id robot of each pair in
+    range holds. `runtime_episode` checks every round that the robots whose `resolve`
     held are exactly those the env held (jaxmripp.sim.flight.holds)."""
     cfg = config.load(REPO / "configs/smoke.yaml", [
-        "world.size=30", "candidates.positions=8", "candidates.oversample=3",
-        f"safety.priority={priority}"] + CROWDED)
+        "world.size=30", "candidates.positions=8", "candidates.oversample=3"] + CROWDED)
     crowded = make_sim(cfg)
     holds = 0
     for seed in (0, 4):

@@ -23,9 +23,9 @@ from jaxmripp import config, export
 from jaxmripp.runtime import (Candidates, MessageError, OnboardPlanner, PlannerStateError,
                               ProtocolVersionError, RuntimeSpec, WeightsFormatError)
 from jaxmripp.runtime import flight, messages, weights
+from jaxmripp.runtime.spec import REMOVED
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, OccupancyMap, fly_until, traverse
 from jaxmripp.sim import flight as jax_flight, geometry
-from jaxmripp.spec.flight import SCAN_TURNS
 from test_runtime import CFG, REPO, init_params
 
 F32 = np.float32
@@ -341,17 +341,6 @@ def test_escape_lets_robots_within_d_c_part_and_equals_jax():
     assert close.sum() > 100 and 0 < got[close].sum() < close.sum()
 
 
-def test_priority_orders_like_jax():
-    budget = F32([0.5, 0.7, 0.5, 0.2])
-    for priority in ("id", "budget"):
-        above = np.asarray(jax_flight.ranks_above(jnp.asarray(budget), priority))
-        for i in range(4):
-            for j in range(4):
-                if i != j:
-                    assert flight.goes_first(j, budget[j], i, budget[i], priority) \
-                        == above[i, j], (priority, i, j)
-
-
 # ---------------------------------------------------------------------------------------
 # Budget and intent in the protocol (from version 2 on)
 
@@ -406,14 +395,10 @@ def sense(planner, position, heading=1, n_seen=0, voxels=None, values=None):
 def test_export_header_carries_safety_and_other_flight_modes_and_removed_settings_are_refused(
         tmp_path):
     spec = spec_of()
-    assert (spec.flight, spec.takeoff_scan, spec.intents, spec.priority) == (
-        CFG.safety.flight, CFG.safety.takeoff_scan, CFG.safety.intents, CFG.safety.priority)
+    assert spec.flight == CFG.safety.flight
     header = export.header(CFG)
     assert header["config"]["safety"] == dataclasses.asdict(CFG.safety)
     assert header["config"]["robots"]["pad_spacing"] == CFG.robots.pad_spacing
-    cfg = config.load(REPO / "configs/smoke.yaml", ["safety.priority=budget",
-                                                    "safety.intents=false"])
-    assert (spec_of(cfg).priority, spec_of(cfg).intents) == ("budget", False)
     assert not spec.escape
     assert spec_of(config.load(REPO / "configs/smoke.yaml", ["safety.escape=true"])).escape
     without = export.header(CFG)
@@ -429,13 +414,18 @@ def test_export_header_carries_safety_and_other_flight_modes_and_removed_setting
                                                      f"'{flight_mode}'.*known_free only"):
             OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
     head["config"]["safety"]["flight"] = "known_free"
-    # A removed setting, as an older export holds it: refused at another value than the
+    # The removed settings, as older exports hold them: refused at another value than the
     # one built in, read at that one.
-    head["config"]["radio"]["map_reach"] = "team"
-    (tmp_path / "policy.json").write_text(json.dumps(head))
-    with pytest.raises(WeightsFormatError, match="config.radio.map_reach is 'team', a "
-                                                 "removed setting; the runtime has only 'radio'"):
-        OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
+    for (section, key), built_in in REMOVED.items():
+        other = (not built_in if isinstance(built_in, bool) else "other"
+                 if isinstance(built_in, str) else built_in + 1)
+        head["config"][section][key] = other
+        (tmp_path / "policy.json").write_text(json.dumps(head))
+        with pytest.raises(WeightsFormatError, match=f"config.{section}.{key} is {other!r}, a "
+                                                     f"removed setting; the runtime has only "
+                                                     f"{built_in!r}"):
+            OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0)
+        head["config"][section][key] = built_in
     head["config"]["radio"]["map_reach"] = "radio"
     (tmp_path / "policy.json").write_text(json.dumps(head))
     assert OnboardPlanner.load(tmp_path, robot_id=0, budget=1.0).spec.share_maps == \
@@ -448,24 +438,21 @@ def test_export_header_carries_safety_and_other_flight_modes_and_removed_setting
         OnboardPlanner(dataclasses.replace(spec, flight="optimistic"), 0, budget=1.0)
 
 
-@pytest.mark.parametrize("scan", [True, False])
-def test_takeoff_scan_charges_four_turns_once(scan):
-    spec = spec_of(takeoff_scan=scan)
+def test_the_first_sense_charges_nothing_and_the_next_the_flight():
+    spec = spec_of()
     planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
     sense(planner, (0.5, 0.5, 0.5))
-    charge = F32(SCAN_TURNS) * F32(spec.turn_cost) if scan else F32(0)
-    assert planner.budget_left == F32(1.0) - charge
-    assert planner.budget_initial == F32(1.0)
+    assert planner.budget_left == planner.budget_initial == F32(1.0)
     d = planner.decide()
     planner.resolve()
     sense(planner, d.position, d.heading)
     turn = F32(spec.turn_cost) * F32(d.heading != 1)
-    assert planner.budget_left == pytest.approx(1.0 - charge - np.linalg.norm(
+    assert planner.budget_left == pytest.approx(1.0 - np.linalg.norm(
         d.position - F32([0.5, 0.5, 0.5])) - turn, abs=1e-6)
 
 
 def test_sense_marks_the_own_voxel_free_and_blocked_moves_map_the_voxel_ahead():
-    spec = spec_of(takeoff_scan=False)
+    spec = spec_of()
     g = spec.size
     planner = OnboardPlanner(spec, 0, budget=1.0, team_size=3)
     own = (15, 15, 15)
@@ -524,13 +511,11 @@ def round_of(planners, target, hear=True):
     return [p.resolve() for p in planners]
 
 
-@pytest.mark.parametrize("priority, budgets, holder", [
-    ("id", (1.0, 1.0), 1), ("id", (0.5, 1.0), 1),  # id: the lower id goes first
-    ("budget", (0.5, 1.0), 0),  # budget: more budget left goes first
-    ("budget", (1.0, 0.5), 1), ("budget", (1.0, 1.0), 1),  # a tie: the lower id
-])
-def test_hold_rule_lower_priority_holds(priority, budgets, holder):
-    spec = spec_of(priority=priority)
+@pytest.mark.parametrize("budgets", [(1.0, 1.0), (0.5, 1.0)])
+def test_hold_rule_the_higher_id_holds(budgets):
+    """The lower id goes first, whatever budget each robot has left."""
+    holder = 1
+    spec = spec_of()
     planners, starts, target = pair(spec, budgets)
     gap = flight.closest_approach(starts[0], target, starts[1], target)
     assert gap <= spec.collision_distance  # the two flights do conflict ...
@@ -552,11 +537,9 @@ def test_hold_rule_lower_priority_holds(priority, budgets, holder):
     assert len(planners[flier].history_pose) == 2
 
 
-def test_out_of_range_or_without_intents_nobody_holds():
+def test_out_of_range_nobody_holds():
     planners, _, target = pair(spec_of())
     assert not any(d.hover for d in round_of(planners, target, hear=False))
-    planners, _, target = pair(spec_of(intents=False))
-    assert not any(d.hover for d in round_of(planners, target))
 
 
 def test_flights_apart_and_hovering_robots_do_not_cause_holds():

@@ -18,10 +18,9 @@ What must agree exactly or to float32 rounding, every round and robot:
   map: an exact interval test per voxel here), its flight keeps more than d_c from every
   robot heard (`jaxmripp.spec.flight`: a point-to-segment distance here), within the
   budget, and not the current pose;
-- the first round is the take-off scan (maps of all four headings, four turns charged),
-  and the robots the env holds for a conflicting intent are exactly those whose
-  `resolve` held (the runtime's intents travel along the env's contacts); the episodes
-  meet such holds (asserted), so the intent rule is compared in the fast suite;
+- the robots the env holds for a conflicting intent are exactly those whose `resolve`
+  held (the runtime's intents travel along the env's contacts); the episodes meet such
+  holds (asserted), so the intent rule is compared in the fast suite;
 - the runtime's radio is the authenticated one (a team key): every message of an honest
   team is taken, none refused, and no merged map delta ever disagrees with the receiver's
   map (`MapSharing.conflicts`), so the runtime's merge rule (OCCUPIED is never freed)
@@ -98,9 +97,8 @@ class JaxSide:
         obs, state, *_ = self._step(key, state, jnp.asarray(actions, jnp.int32))
         return obs, state
 
-    def camera(self, state, turn=0):
-        heading = (state.heading + turn) % N_HEADINGS
-        return jax.tree.map(np.asarray, self._cast(state.world, state.position, heading))
+    def camera(self, state):
+        return jax.tree.map(np.asarray, self._cast(state.world, state.position, state.heading))
 
     def contacts(self, state):
         return np.asarray(comms.contacts(state.position, self.radio_range))
@@ -267,16 +265,12 @@ def fly_episode(sim, seed, pooled):
 
 
 def sense_and_talk(jx, now, planners, blocked, t):
-    """Senses (round 0: the take-off scan, the env's heading order), exchanges the first
-    broadcast and the map deltas along the env's contacts (maps and building tops are then
-    the env's); returns the contacts."""
-    turns = (1, 2, 3, 0) if t == 0 and planners[0].spec.takeoff_scan else (0,)
-    casts = [jx.camera(now, turn) for turn in turns]
+    """Senses, exchanges the first broadcast and the map deltas along the env's contacts
+    (maps and building tops are then the env's); returns the contacts."""
+    cast = jx.camera(now)
     for i, planner in enumerate(planners):
-        planner.sense(now.position[i], int(now.heading[i]),
-                      np.concatenate([c.voxels[i] for c in casts]),
-                      np.concatenate([c.values[i] for c in casts]),
-                      int(casts[-1].seen[i].sum()), blocked=bool(blocked[i]))
+        planner.sense(now.position[i], int(now.heading[i]), cast.voxels[i], cast.values[i],
+                      int(cast.seen[i].sum()), blocked=bool(blocked[i]))
         assert planner.budget_left == pytest.approx(float(now.budget_left[i]), abs=1e-6)
     contact = jx.contacts(now)
     outbox = [planner.message() for planner in planners]

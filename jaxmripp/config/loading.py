@@ -33,6 +33,9 @@ REMOVED: dict[str, Any] = {
     "train.sectors": False,
     "reward.team_share": 0.0,
     "policy.claims": False,
+    "safety.takeoff_scan": False,
+    "safety.intents": True,
+    "safety.priority": "id",
 }
 
 

@@ -12,7 +12,7 @@ from typing import Any
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
 from jaxmripp.spec import feeding
-from jaxmripp.spec.flight import FLIGHT_MODES, PRIORITIES
+from jaxmripp.spec.flight import FLIGHT_MODES
 from jaxmripp.spec.view import FACADE_TOPS
 
 
@@ -80,7 +80,6 @@ RULES: dict[str, tuple] = {
     "radio.range": _NONNEG,
     "radio.collision_distance": _NONNEG,
     "safety.flight": _choice(*FLIGHT_MODES),
-    "safety.priority": _choice(*PRIORITIES),
     "candidates.positions": _range(1, 512),
     "candidates.shell": _pair(_range(0, 1, lo_open=True)),
     "candidates.oversample": _range(1, 32),

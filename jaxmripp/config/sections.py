@@ -81,9 +81,6 @@ class SafetyConfig:
     """Safe flight: the rules are written in jaxmripp.spec.flight."""
 
     flight: str = "known_free"  # known_free | truncate | optimistic (unsafe reference)
-    takeoff_scan: bool = False  # a full turn at the start pose before the first decision
-    intents: bool = True  # robots in range announce their flights; lower priority holds
-    priority: str = "id"  # id | budget: who goes first among robots in range
     # Robots closer than d_c to a robot they hear may still fly what takes them no closer
     # (off: two robots that met out of radio range are offered nothing and retire)
     escape: bool = False

@@ -35,7 +35,7 @@ from jaxmripp.runtime.auth import team_key
 from jaxmripp.runtime.depth import DepthCamera
 from jaxmripp.runtime.planner import OnboardPlanner
 from jaxmripp.runtime.weights import ExportedPolicy, RuntimeSpec
-from jaxmripp.spec.grid import FREE, HEADING_ANGLES, N_HEADINGS
+from jaxmripp.spec.grid import FREE, HEADING_ANGLES
 
 PLANNERS = ("policy", "nbv", "greedy", "random")
 
@@ -141,16 +141,13 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
     late, max_speed, track_error, step = 0, 0.0, 0.0, 0
     try:
         for step in range(rounds + 1):
-            scan = step == 0 and spec.takeoff_scan
             for i, robot in enumerate(planners):
-                turns = [(int(heading[i]) + k) % N_HEADINGS for k in (1, 2, 3, 0)] \
-                    if scan else None
-                images, seen, seen_here = _look(scene, i, camera, turns)
+                images, seen = _look(scene, i, camera)
                 found_time[seen] = np.minimum(found_time[seen], scene.time)
                 start = time.perf_counter()
                 # The windows in sight name their voxels (what the target belief counts).
                 robot.sense_depth(position[i], int(heading[i]), images, camera, grid,
-                                  len(seen_here), windows=city.window_voxel[seen])
+                                  len(seen), windows=city.window_voxel[seen])
                 sense_ms.append(1e3 * (time.perf_counter() - start))
             decisions = _plan(planners, position, spec, decision_ms)
             if progress is not None:
@@ -182,21 +179,12 @@ def fly_mission(city: City, spec: RuntimeSpec, policy: ExportedPolicy | None, pl
         waypoints=waypoints)
 
 
-def _look(scene: Scene, drone: int, camera: DepthCamera, turns):
-    """Depth images, windows seen and windows seen at the final heading by one drone where
-    it is; with `turns` (the take-off scan) it turns on the spot through those headings,
-    ending at its own (n_seen counts that one, as the voxel env does)."""
-    images, seen = [], []
-    for yaw_index in (turns or [None]):
-        if yaw_index is not None:
-            quad = scene.drones[drone]
-            quad.fly_to(quad.goal, float(HEADING_ANGLES[yaw_index]))
-            while not quad.arrived():
-                scene.step()
-        position, rotation = scene.camera_pose(drone)
-        images.append((scene.depth_image(camera, position, rotation), position, rotation))
-        seen.append(scene.windows_seen(camera, position, rotation))
-    return images, np.unique(np.concatenate(seen)), seen[-1]
+def _look(scene: Scene, drone: int, camera: DepthCamera):
+    """The depth image ([(depth, camera position, rotation)], as `sense_depth` takes it)
+    and the windows seen by one drone where it is."""
+    position, rotation = scene.camera_pose(drone)
+    return ([(scene.depth_image(camera, position, rotation), position, rotation)],
+            scene.windows_seen(camera, position, rotation))
 
 
 def _plan(planners: list[OnboardPlanner], position: np.ndarray, spec: RuntimeSpec,

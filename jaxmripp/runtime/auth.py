@@ -3,7 +3,7 @@
 A team that shares a secret key signs every message it sends (HMAC-SHA256 over the
 message's bytes, its sender id and its sequence number) and takes only messages that
 carry a valid tag, each sender's in increasing sequence: a radio without the key can
-neither speak for a robot (claim id 0 and win every priority, or send map deltas) nor
+neither speak for a robot (claim id 0 and go first in every hold, or send map deltas) nor
 replay what a robot said before. Without a key nothing is checked, as before keys.
 What a team member holding the key can still do is in docs/safety.md.
 

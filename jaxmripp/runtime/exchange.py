@@ -31,7 +31,7 @@ class RadioExchange:
         """The radio's state of a new planner (after `id`)."""
         self.radio = auth.RadioAuth(team_key, self.id)
         self.contacts: dict[int, np.ndarray] = {}  # positions heard this round, by sender
-        self.intents: dict[int, tuple] = {}  # sender -> (position, target, budget_left)
+        self.intents: dict[int, tuple] = {}  # sender -> (position, target or None)
         self.last_map_message_bytes: int | None = None
 
     @property
@@ -125,8 +125,7 @@ class RadioExchange:
         message = self._heard(data, messages.Message, messages.read_message)
         if message is None:
             return None
-        self.intents[message.sender] = (np.asarray(message.position, F32), message.intent,
-                                        F32(message.budget_left))
+        self.intents[message.sender] = (np.asarray(message.position, F32), message.intent)
         return message
 
     def _heard(self, data, kind, read):

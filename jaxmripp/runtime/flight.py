@@ -1,7 +1,6 @@
 """Safe flight between robots, in NumPy: the rules of `jaxmripp.spec.flight`.
 
-The candidate rule against the robots heard this round and the intent (hold) rule with
-its priority. The JAX implementation is `jaxmripp.sim.flight`; both take the closest
+The candidate rule against the robots heard this round and the intent (hold) rule. The JAX implementation is `jaxmripp.sim.flight`; both take the closest
 approach of two flights from the specification itself (one function for NumPy and JAX).
 """
 
@@ -10,7 +9,6 @@ from __future__ import annotations
 import numpy as np
 
 from jaxmripp.spec import flight as spec
-from jaxmripp.spec.flight import PRIORITIES
 
 F32 = np.float32
 
@@ -37,33 +35,17 @@ def clear_of_robots(start, ends, others, collision_distance, escape: bool = Fals
     return np.all(clear, axis=-1)
 
 
-def goes_first(other_id: int, other_budget, own_id: int, own_budget, priority: str) -> bool:
-    """True when robot `other_id` goes before robot `own_id` (`jaxmripp.spec.flight`):
-    priority "id", the lower id; "budget", more budget left, then the lower id."""
-    if priority not in PRIORITIES:
-        raise ValueError(f"priority: got {priority!r}; allowed: {', '.join(PRIORITIES)}")
-    lower_id = other_id < own_id
-    if priority == "id":
-        return lower_id
-    other_budget, own_budget = F32(other_budget), F32(own_budget)
-    return bool(other_budget > own_budget or (other_budget == own_budget and lower_id))
-
-
-def yields_to(own_id: int, own_budget, start, target, intents, collision_distance,
-              priority: str) -> tuple[int, float] | None:
-    """The hold rule for one robot flying start -> target: the higher-priority robot
-    (the first in priority order) whose announced flight comes within d_c of it, with that
-    closest approach, or None. intents: {sender: (position, target or None, budget_left)}
-    of the robots heard; a None target (hovering) announces no flight."""
+def yields_to(own_id: int, start, target, intents, collision_distance
+              ) -> tuple[int, float] | None:
+    """The hold rule for one robot flying start -> target: the lowest-id robot below
+    `own_id` whose announced flight comes within d_c of it, with that closest approach,
+    or None. intents: {sender: (position, target or None)} of the robots heard; a None
+    target (hovering) announces no flight."""
     conflicts = []
-    for sender, (position, intent, budget) in intents.items():
-        if intent is None or not goes_first(sender, budget, own_id, own_budget, priority):
+    for sender, (position, intent) in intents.items():
+        if intent is None or sender >= own_id:
             continue
         gap = float(closest_approach(start, target, position, intent))
         if gap <= F32(collision_distance):
-            order = (sender,) if priority == "id" else (-F32(budget), sender)
-            conflicts.append((order, sender, gap))
-    if not conflicts:
-        return None
-    _, sender, gap = min(conflicts)
-    return sender, gap
+            conflicts.append((sender, gap))
+    return min(conflicts) if conflicts else None

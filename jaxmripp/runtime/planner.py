@@ -14,9 +14,7 @@ One planning round, on every robot, in this order (the JAX env's order, `jaxmrip
 
 `sense` charges the budget for the move just made, records the visited pose and the number
 of windows seen from it, writes the observed voxels into the map and marks the robot's own
-voxel FREE. With `safety.takeoff_scan` the first `sense` is the take-off scan: the caller
-turns the robot through the four headings at its start pose and passes every voxel seen on
-the way (n_seen: the windows seen at the start heading); it is charged `SCAN_TURNS` turns.
+voxel FREE.
 `receive` stores what a neighbour visited and where it is now. With `spec.share_maps`
 (`jaxmripp.spec.sharing`), `map_message` sends every robot heard this round the voxels of
 this robot's map it may lack (`sharing`; the size in bytes is kept in
@@ -29,8 +27,8 @@ merged map (the rule of `jaxmripp.spec.layout`, in `observation`, with the view 
 `jaxmripp.spec.view`, in `view`, the target belief of `jaxmripp.spec.belief`, in `belief`,
 and the lookahead input, in `lookahead`, where the policy has them) and picks the next pose with the exported policy or the greedy rule of
 `jaxmripp.evaluation.baselines.greedy_planner`. `resolve` applies the intent rule of
-`jaxmripp.spec.flight` (with `safety.intents`): if the chosen flight comes within d_c of the
-flight announced by a higher-priority robot heard (`safety.priority`), the robot holds -- it
+`jaxmripp.spec.flight`: if the chosen flight comes within d_c of the
+flight announced by a lower-id robot heard, the robot holds -- it
 stays where it is, is charged nothing, and the next `sense` gets the same pose. Inputs are
 checked first (`validation`), so a rejected call changes nothing, and calls out of order
 (`ROUND` in `exchange`) are refused. With a team key (`team_key`, `jaxmripp.runtime.auth`)
@@ -68,7 +66,6 @@ from jaxmripp.runtime.mapping import OccupancyMap, voxel_ahead
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.sharing import MapSharing
 from jaxmripp.runtime import weights
-from jaxmripp.spec.flight import SCAN_TURNS
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, OCCUPIED
 from jaxmripp.spec import layout
 from jaxmripp.spec import sectors as sectors_spec
@@ -110,12 +107,11 @@ class OnboardPlanner(RadioExchange):
         (`jaxmripp.spec.sectors`, as `eval.sectors` in the JAX sweeps); team_key: the
         team's secret (bytes, `jaxmripp.runtime.auth`): every message is then signed and
         only messages signed with it are taken (`rejected_messages` counts the others).
-        The safe-flight rules (obstacles, take-off scan, intents, priority) are the spec's
-        `flight`, `takeoff_scan`, `intents` and `priority`, from the export."""
+        The obstacle rule is the spec's `flight`, from the export."""
         team_size = spec.team_size if team_size is None else int(team_size)
         mode = mode or ("policy" if policy is not None else "greedy")
         validation.settings(mode, policy is not None, robot_id, team_size, budget,
-                            spec.flight, spec.priority)
+                            spec.flight)
         self.spec = spec
         self.id = int(robot_id)
         self.team_size = team_size
@@ -171,9 +167,8 @@ class OnboardPlanner(RadioExchange):
         reached (short of the commanded one if `blocked`; the same pose after a hover or a
         hold); voxels: observed voxels as flat C-order indices into (G, G, G) (G^3 marks
         "not observed" and is skipped) or as (K, 3) integer coordinates; values: their
-        codes (0 free, 2 occupied); n_seen: windows seen from this pose. With
-        `spec.takeoff_scan` the first call is the take-off scan (voxels seen at all four
-        headings; charged SCAN_TURNS turns). blocked: the last move was stopped by an
+        codes (0 free, 2 occupied); n_seen: windows seen from this pose. blocked: the last
+        move was stopped by an
         obstacle; the voxel ahead of the stop on the commanded segment is then mapped
         occupied. windows: the voxels among these that the robot's classifier reports as
         windows, as flat indices or (K, 3) coordinates (each mapped OCCUPIED once the call
@@ -187,9 +182,6 @@ class OnboardPlanner(RadioExchange):
 
         first = self.position is None
         moved = first or self._command is not None  # a hover or a hold is not a visit
-        if first and self.spec.takeoff_scan:
-            scan = F32(SCAN_TURNS) * F32(self.spec.turn_cost)
-            self.budget_left = F32(max(self.budget_left - scan, F32(0.0)))
         if not first:
             self.step += 1
             if self._command is not None:
@@ -217,7 +209,7 @@ class OnboardPlanner(RadioExchange):
                     blocked: bool = False, windows=None) -> None:
         """`sense` from depth images instead of voxel lists (`jaxmripp.runtime.depth`):
         images [(depth (H, W) metres, camera position (3,) metres, rotation (3, 3) camera
-        -> world), ...] taken at this pose (all four headings for the take-off scan);
+        -> world), ...] taken at this pose;
         camera: `DepthCamera`; frame: the `GridFrame` placing the unit cube in metres.
         Voxels this map holds OCCUPIED stay so (a static world). windows: as `sense`'s, as
         (K, 3) voxel coordinates; those whose voxel the images leave unmapped OCCUPIED (a
@@ -279,21 +271,19 @@ class OnboardPlanner(RadioExchange):
         """The decision to fly, after the intents heard (`receive_intent`): `decide`'s, or
         a hold -- the current pose, `hover` True, `yields_to` and `reason` naming the
         robot -- when the chosen flight's closest approach to the announced flight of a
-        higher-priority robot heard is <= d_c. Without `safety.intents`, `decide`'s."""
+        lower-id robot heard is <= d_c."""
         decision = self._require_decided("resolve")
         self._pending = None
-        if decision.hover or not self.spec.intents:
+        if decision.hover:
             return decision
-        conflict = flight.yields_to(self.id, self.budget_left, self.position,
-                                    decision.position, self.intents,
-                                    self.spec.collision_distance, self.spec.priority)
+        conflict = flight.yields_to(self.id, self.position, decision.position, self.intents,
+                                    self.spec.collision_distance)
         if conflict is None:
             return decision
         sender, gap = conflict
         self._command = None  # hold: no move, nothing charged, no visit
         reason = (f"hold: yields to robot {sender} (its announced flight comes within "
-                  f"{gap:.3g} of ours, d_c = {self.spec.collision_distance:g}, priority "
-                  f"{self.spec.priority})")
+                  f"{gap:.3g} of ours, d_c = {self.spec.collision_distance:g})")
         return dataclasses.replace(
             decision, pose=np.append(self.position, HEADING_ANGLES[self.heading]).astype(F32),
             position=self.position.copy(), heading=self.heading, index=-1, hover=True,

@@ -13,7 +13,6 @@ from typing import Any, Mapping
 from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
 from jaxmripp.spec.feeding import UNCAPPED
-from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.layout import features
 from jaxmripp.spec.view import FACADE_TOPS
 
@@ -36,6 +35,9 @@ REMOVED = {
     ("radio", "map_reach"): "radio",
     ("radio", "sector_split"): "angle",
     ("radio", "sector_count"): 0,
+    ("safety", "takeoff_scan"): False,
+    ("safety", "intents"): True,
+    ("safety", "priority"): "id",
 }
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
@@ -64,13 +66,9 @@ class RuntimeSpec:
     gp: GPSpec
     utility_norm: float
     max_steps: int
-    # Safe flight (jaxmripp.spec.flight): the obstacle rule (always "known_free" here),
-    # whether the first sense is a take-off scan, whether robots exchange intents and hold,
-    # who goes first ("id" or "budget") and whether robots too close may part (escape).
+    # Safe flight (jaxmripp.spec.flight): the obstacle rule (always "known_free" here) and
+    # whether robots too close may part (escape).
     flight: str = "known_free"
-    takeoff_scan: bool = True
-    intents: bool = True
-    priority: str = "id"
     escape: bool = False
     # The lookahead input (jaxmripp.spec.layout): candidates followed (0: no such input),
     # the later flight's weight and the facade weight of its view value.
@@ -177,9 +175,6 @@ class RuntimeSpec:
             utility_norm=get("reward", "utility_norm", float),
             max_steps=get("episode", "max_steps", int),
             flight=flight,
-            takeoff_scan=get("safety", "takeoff_scan", bool),
-            intents=get("safety", "intents", bool),
-            priority=choice("safety", "priority", PRIORITIES),
             escape=get("safety", "escape", bool, default=False),
             **ahead,
         )

@@ -14,7 +14,6 @@ import math
 import numpy as np
 
 from jaxmripp.runtime.errors import InvalidPoseError
-from jaxmripp.spec.flight import PRIORITIES
 from jaxmripp.spec.grid import N_HEADINGS, OCCUPIED
 
 F32 = np.float32
@@ -22,7 +21,7 @@ MODES = ("policy", "greedy", "nbv", "random")
 
 
 def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget: float,
-             flight: str, priority: str) -> None:
+             flight: str) -> None:
     """The planner's constructor arguments and the spec's safety rules (ValueError names
     the argument)."""
     if mode not in MODES:
@@ -36,8 +35,6 @@ def settings(mode: str, has_policy: bool, robot_id: int, team_size: int, budget:
     if flight != "known_free":
         raise ValueError(f"spec.flight: got {flight!r}; the onboard runtime flies known_free "
                          "only")
-    if priority not in PRIORITIES:
-        raise ValueError(f"spec.priority: got {priority!r}; allowed: {', '.join(PRIORITIES)}")
 
 
 def decide_mode(mode: str, has_policy: bool) -> str:

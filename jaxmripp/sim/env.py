@@ -19,8 +19,7 @@ import jax.numpy as jnp
 from jaxmripp.sim import candidates as cands
 from jaxmripp.sim import comms, flight, geometry, gp, lookahead, maps, sensing, view
 from jaxmripp.sim import world as worldmod
-from jaxmripp.sim.geometry import FREE, N_HEADINGS, OCCUPIED
-from jaxmripp.spec.flight import SCAN_TURNS
+from jaxmripp.sim.geometry import FREE, OCCUPIED
 from jaxmripp.sim.feeding import feed_gps
 from jaxmripp.sim.observation import FEATURES, ROBOT_STATE, Observation, observe  # noqa: F401
 from jaxmripp.sim.params import DynamicParams, EnvParams
@@ -64,8 +63,6 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         step=jnp.zeros((), jnp.int32),
         metrics=Metrics.zeros(n),
     )
-    if params.safety.takeoff_scan:
-        state = _takeoff_scan(state, params, dyn)
     state, _ = _after_move(key_rest, state, jnp.ones((n,), bool), params, dyn)
     return lookahead.with_ahead_rates(key_rest, observe(state, params), state, params,
                                       dyn), state
@@ -83,23 +80,6 @@ def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvPara
     info = parts.replace(acted=moving)
     obs = lookahead.with_ahead_rates(key, observe(state, params), state, params, dyn)
     return obs, state, reward, state.done, info
-
-
-def _takeoff_scan(state: EnvState, params: EnvParams, dyn: DynamicParams) -> EnvState:
-    """A full turn at the start pose (jaxmripp.spec.flight): the maps and discovered windows
-    of the three other headings (the start heading's cast follows in `_after_move`),
-    charged SCAN_TURNS turns."""
-    team_map, top, discovered = state.team_map, state.building_top, state.discovered
-    for turn in range(1, N_HEADINGS):
-        heading = (state.heading + turn) % N_HEADINGS
-        casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
-            state.world, state.position, heading, params.sensor, params.size)
-        team_map = maps.observe(team_map, casts.voxels)
-        top = jax.vmap(view.raise_tops_from_cast)(top, casts)
-        discovered = discovered | jnp.any(casts.seen, axis=0)
-    charge = SCAN_TURNS * dyn.turn_cost
-    return state.replace(team_map=team_map, building_top=top, discovered=discovered,
-                         budget_left=jnp.maximum(state.budget_left - charge, 0.0))
 
 
 def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
@@ -135,10 +115,8 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
 
     stop, crashed, blocked, obstacle = jax.vmap(fly)(state.position, target, rows)
     heard = comms.contacts(state.position, dyn.radio_range)
-    held = jnp.zeros((n,), bool)
-    if params.safety.intents:  # robots announce the flights they will really fly
-        held = flight.holds(state.position, stop, chosen, heard, state.budget_left,
-                            dyn.collision_distance, params.safety.priority)
+    # Robots announce the flights they will really fly (their intents).
+    held = flight.holds(state.position, stop, chosen, heard, dyn.collision_distance)
     moving = chosen & ~held
     blocked = moving & blocked
     crashed = moving & crashed

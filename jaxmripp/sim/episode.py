@@ -39,7 +39,7 @@ class EpisodeResult:
     steps: jax.Array  # () steps until every robot was done
     obstacle_collisions: jax.Array  # () flights that entered a building (jaxmripp.spec.flight)
     blocked: jax.Array  # () flights cut short where the map stops being known free
-    held: jax.Array  # () flights given up for a higher-priority robot's intent
+    held: jax.Array  # () flights given up for a lower-id robot's intent
     robot_collisions_in_range: jax.Array  # () pairs closer than d_c that heard each other
     robot_collisions_out_of_range: jax.Array  # () pairs closer than d_c out of radio range
     distance: jax.Array  # () team path length

@@ -36,25 +36,14 @@ def pairwise_approach(start: jax.Array, end: jax.Array) -> jax.Array:
     return closest_approach(start[:, None], end[:, None], start[None], end[None])
 
 
-def ranks_above(budget_left: jax.Array, priority: str) -> jax.Array:
-    """(N,) -> (N, N) bool: [i, j] True when robot j goes before robot i."""
-    n = budget_left.shape[0]
-    ids = jnp.arange(n)
-    lower_id = ids[None, :] < ids[:, None]
-    if priority == "id":
-        return lower_id
-    more = budget_left[None, :] > budget_left[:, None]
-    same = budget_left[None, :] == budget_left[:, None]
-    return more | (same & lower_id)
-
-
 def holds(start: jax.Array, target: jax.Array, flying: jax.Array, heard: jax.Array,
-          budget_left: jax.Array, collision_distance, priority: str) -> jax.Array:
+          collision_distance) -> jax.Array:
     """(N,) bool: flying robots whose flight comes within d_c of the announced flight of a
-    higher-priority flying robot they hear."""
+    lower-id flying robot they hear."""
     gap = pairwise_approach(start, target)
-    conflict = heard & flying[None, :] & ranks_above(budget_left, priority) \
-        & (gap <= collision_distance)
+    ids = jnp.arange(start.shape[0])
+    lower_id = ids[None, :] < ids[:, None]  # [i, j]: robot j goes before robot i
+    conflict = heard & flying[None, :] & lower_id & (gap <= collision_distance)
     return flying & jnp.any(conflict, axis=1)
 
 

@@ -17,7 +17,7 @@ class Metrics:
 
     obstacle_collisions: jax.Array  # (N,) int32 flights that entered a building (truth)
     blocked: jax.Array  # (N,) int32 flights cut short where the map stops being known free
-    held: jax.Array  # (N,) int32 chosen flights given up for a higher-priority intent
+    held: jax.Array  # (N,) int32 chosen flights given up for a lower-id robot's intent
     robot_collisions_in_range: jax.Array  # () int32 pairs closer than d_c, in radio range
     robot_collisions_out_of_range: jax.Array  # () int32 ... out of radio range
     distance: jax.Array  # (N,) float32 path length flown

@@ -16,9 +16,6 @@ Obstacles (`safety.flight`)
     optimistic   the unsafe reference: unknown voxels count as free. Only for measuring what
                  safety costs; flights are checked against the truth and stop before a
                  building, which counts an obstacle collision.
-    Take-off scan (`safety.takeoff_scan`, off by default): before the first decision every
-    robot turns a full circle at its start pose, sensing at each of the four headings, and
-    is charged four turns.
 
 Closest approach of two flights
     Robots fly their segments at one common speed, starting together: robot A at a0 -> a1
@@ -34,12 +31,11 @@ Robots in radio range
     flying away from it) is clear of that robot whatever their distance: two robots that
     came within d_c while out of radio range then part, instead of both being left with
     nothing on offer (and retired) for the rest of the episode. Robots then choose at once and announce
-    the chosen segment (the intent) to the robots in range (`safety.intents`). Priority
-    (`safety.priority`): `id` -- the lower id first; `budget` -- more budget left first, then
-    the lower id. A robot whose chosen flight comes within d_c (closest approach <= d_c) of
-    the announced flight of a higher-priority robot in range *holds*: it stays where it is
+    the chosen segment (the intent) to the robots in range; the lower id goes first. A
+    robot whose chosen flight comes within d_c (closest approach <= d_c) of the announced
+    flight of a lower-id robot in range *holds*: it stays where it is
     this step, is charged nothing, and chooses again next step. One round suffices: the
-    higher-priority robot either flies what it announced or holds itself, and its flight was
+    lower-id robot either flies what it announced or holds itself, and its flight was
     kept clear of the holding robot's position by the candidate rule above.
 
 Collisions (the environment's ground truth)
@@ -99,5 +95,3 @@ def takes_no_closer(start, end, other):
     NumPy and JAX arrays share it."""
     away = (start - other) * (end - start)
     return away[..., 0] + away[..., 1] + away[..., 2] >= 0
-PRIORITIES = ("id", "budget")
-SCAN_TURNS = 4  # a full circle through the four headings, back to the start heading

@@ -2,10 +2,10 @@
 
 A robot broadcasts what the paper's single-hop radio exchanges: its own visited waypoints
 (poses, in order, with the normalised number of windows seen from each) and its current
-position, plus what the safe-flight rules of `jaxmripp.spec.flight` need: its remaining
-budget (the `budget` priority) and, in the second broadcast of a round, its intent -- the
-target of the flight it has chosen. Histories only grow, so a message carries them from
-some index `start` on and a receiver appends what it does not have yet.
+position, its remaining budget and, for the safe-flight rules of `jaxmripp.spec.flight`,
+in the second broadcast of a round its intent -- the target of the flight it has chosen.
+Histories only grow, so a message carries them from some index `start` on and a receiver
+appends what it does not have yet.
 
 Wire format (UTF-8 JSON object):
     {"type": MESSAGE_TYPE, "protocol": PROTOCOL_VERSION, "sender": 2, "seq": 17,
