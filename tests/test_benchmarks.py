@@ -21,7 +21,7 @@ SCRIPTS = {  # script: (arguments, figures it must print)
                             "env.share_candidates", "env.share_view_gain",
                             "env.share_share_maps", "env.share_gps"]),
     "env_ab.py": (["--base", "HEAD", "--envs", "4", "--rounds", "1", "--steps", "1",
-                   "world.size=20", "--tree-set", "gp.peer_rounds=1"],
+                   "world.size=20", "--tree-set", "gp.catchup_rounds=2"],
                   ["env_ab.wall_ratio", "env_ab.cpu_ratio"]),
     "sensing.py": (TINY_BATCH, ["sensing.robot_casts_per_s", "sensing.frustum_casts_per_s"]),
     "gp.py": ([], ["gp.step_per_s", "gp.speedup_vs_refactor", "gp.block_speedup_vs_adds"]),

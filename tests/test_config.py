@@ -97,7 +97,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.buildings=400", "buildings fit"),
         ("ppo.algo=sac", "one of ippo, mappo"),
         ("gp.noise=0", "gp.noise: got 0.0"),
-        ("gp.peer_rounds=0", "gp.peer_rounds: got 0; allowed: a number in [1, 255]"),
+        ("gp.peer_rounds=7", "gp.peer_rounds: got 7, a removed setting; allowed: 255"),
         ("train.radio_ranges=[0.3, .inf]", "train.radio_ranges: got [0.3, inf], a removed "
                                             "setting; allowed: [] (the one built in)"),
         ("world.footprint_min=4", "world.footprint_min: got 4; allowed: 0 (every side"),

@@ -414,8 +414,8 @@ def test_chain_relay_spreads_knowledge_end_to_end_single_hop_does_not(fns, rollo
 
 
 def test_peer_rounds_take_the_largest_backlog_first(rollout):
-    """Hand-worked: min(N - 1, peer_rounds) + catchup_rounds rounds (3, then 2 with a cap of
-    1); ties go to the nearest peer offset."""
+    """Hand-worked: N - 1 + catchup_rounds rounds (3, then 2 without the catch-up round);
+    ties go to the nearest peer offset."""
     assert P0.gp.catchup_rounds == 1
     state = max((s for _, s, *_ in rollout[1:]), key=lambda s: int(np.asarray(s.know).min()))
     know = np.asarray(state.know)
@@ -428,10 +428,10 @@ def test_peer_rounds_take_the_largest_backlog_first(rollout):
     np.testing.assert_array_equal(know - np.asarray(after.fed), [[0, 0, 1], [0, 0, 0], [0, 1, 0]])
     np.testing.assert_array_equal(
         np.asarray(after.comm_gp.count) - np.asarray(start.comm_gp.count), [3, 0, 3])
-    # Capped at gp.peer_rounds = 1: min(2, 1) + 1 = 2 rounds.
+    # With gp.catchup_rounds = 0: 2 + 0 = 2 rounds.
     # Robot 0: 3 vs 1 -> peer 1, 2 vs 1 -> peer 1. Robot 2: tie 2 vs 2 -> 0, 1 vs 2 -> 1.
-    capped = dataclasses.replace(P0, gp=dataclasses.replace(P0.gp, peer_rounds=1))
-    after = jax.jit(feeding.feed_gps, static_argnums=1)(start, capped)[0]
+    fewer = dataclasses.replace(P0, gp=dataclasses.replace(P0.gp, catchup_rounds=0))
+    after = jax.jit(feeding.feed_gps, static_argnums=1)(start, fewer)[0]
     np.testing.assert_array_equal(know - np.asarray(after.fed), [[0, 1, 1], [0, 0, 0], [1, 1, 0]])
     np.testing.assert_array_equal(
         np.asarray(after.comm_gp.count) - np.asarray(start.comm_gp.count), [2, 0, 2])

@@ -194,17 +194,6 @@ def test_gain_model_travels_in_the_header_and_older_headers_keep_the_default():
         RuntimeSpec.from_header(header)
 
 
-def test_peer_round_cap_travels_in_the_header_and_older_headers_are_uncapped():
-    capped = dataclasses.replace(CFG, gp=dataclasses.replace(CFG.gp, peer_rounds=2))
-    assert spec_of(capped).gp.peer_rounds == 2
-    header = weights.jsonable(export.header(capped))
-    del header["config"]["gp"]["peer_rounds"]  # exported before the setting
-    assert RuntimeSpec.from_header(header).gp.peer_rounds == 255
-    header["config"]["gp"]["peer_rounds"] = 2.5
-    with pytest.raises(WeightsFormatError, match="config.gp.peer_rounds is not an integer"):
-        RuntimeSpec.from_header(header)
-
-
 # ---------------------------------------------------------------------------------------
 # Ports of the JAX math
 

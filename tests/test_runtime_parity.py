@@ -60,11 +60,11 @@ from test_runtime import EXPECTED_FEATURES, EXPECTED_ROBOT_STATE, REPO
 from test_runtime_episode import point_to_segment, share_maps
 from test_runtime_flight import interval_reference
 
-# gp.peer_rounds = 1 caps the feeding at 2 rounds for 2 peers (one of them catch-up), so
+# gp.catchup_rounds = 0 leaves the feeding 2 rounds for 2 peers and none to catch up, so
 # backlogs build up and which peer each round picks matters.
 CFG = config.load(REPO / "configs/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
-    "candidates.positions=8", "candidates.oversample=3", "gp.peer_rounds=1"])
+    "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0"])
 SEEDS = tuple(range(8))  # the episodes are cheap next to compiling the env
 KAPPA, LAM = 1.0, 0.5  # both GPs enter the greedy score
 COL = {name: k for k, name in enumerate(EXPECTED_FEATURES)}

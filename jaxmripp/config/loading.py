@@ -36,6 +36,7 @@ REMOVED: dict[str, Any] = {
     "safety.takeoff_scan": False,
     "safety.intents": True,
     "safety.priority": "id",
+    "gp.peer_rounds": 255,  # uncapped: N - 1 for every team of at most 256 robots
 }
 
 

@@ -11,7 +11,6 @@ from typing import Any
 
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
-from jaxmripp.spec import feeding
 from jaxmripp.spec.flight import FLIGHT_MODES
 from jaxmripp.spec.view import FACADE_TOPS
 
@@ -89,7 +88,6 @@ RULES: dict[str, tuple] = {
     "gp.variance": _POSITIVE,
     "gp.noise": _range(1e-6, 10),
     "gp.eval_grid": _range(1, 16),
-    "gp.peer_rounds": _range(1, feeding.UNCAPPED),
     "gp.catchup_rounds": _range(0, 64),
     "reward.alpha": _NONNEG,
     "reward.beta": _NONNEG,

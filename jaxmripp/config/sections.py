@@ -9,7 +9,6 @@ from __future__ import annotations
 import dataclasses
 import math
 
-from jaxmripp.spec import feeding
 
 REFERENCE_SIZE = 50  # the paper's grid; counts below are quoted at this size
 
@@ -105,10 +104,7 @@ class GPConfig:
     variance: float = 1.0
     noise: float = 0.01
     eval_grid: int = 3  # trace evaluation set: eval_grid^3 positions x 4 headings
-    # Peer rounds per step (jaxmripp.spec.feeding): R = min(N - 1, peer_rounds) +
-    # catchup_rounds. The default never caps; a cap makes a robot's feeding cost the same
-    # for any team size above peer_rounds + 1.
-    peer_rounds: int = feeding.UNCAPPED
+    # Peer rounds per step (jaxmripp.spec.feeding): R = N - 1 + catchup_rounds
     catchup_rounds: int = 1
     shared_utility: bool = False  # one utility GP per environment fed by all robots
 

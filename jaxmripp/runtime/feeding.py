@@ -1,7 +1,6 @@
 """One robot's GP feeding, in NumPy: the rule written in `jaxmripp.spec.feeding`.
 
-The rule (own pending pose first, then R = min(N - 1, peer_rounds) + catchup_rounds peer
-rounds taking the oldest pending pose of the peer with the largest backlog, ties to the
+The rule (own pending pose first, then R = N - 1 + catchup_rounds peer rounds taking the oldest pending pose of the peer with the largest backlog, ties to the
 nearest offset) is stated once, in that module; this is its single-robot implementation, as
 `jaxmripp.sim.feeding.feed_gps` is its JAX one. The histories themselves stay with
 the planner (they are also what its radio sends); this class only remembers how much of
@@ -28,10 +27,9 @@ def peer_order(robot_id: int, team_size: int) -> list[int]:
 class FeedSchedule:
     """How many entries of each history robot `robot_id` has fed into its GPs."""
 
-    def __init__(self, robot_id: int, team_size: int, peer_rounds_cap: int,
-                 catchup_rounds: int):
+    def __init__(self, robot_id: int, team_size: int, catchup_rounds: int):
         self.order = peer_order(robot_id, team_size)
-        self.rounds = peer_rounds(team_size, peer_rounds_cap, catchup_rounds)
+        self.rounds = peer_rounds(team_size, catchup_rounds)
         self.own_fed = 0
         self.peer_fed: dict[int, int] = {j: 0 for j in self.order}
 

@@ -128,8 +128,7 @@ class OnboardPlanner(RadioExchange):
         self._init_radio(team_key)
         self.utility_gp = GaussianProcess(spec.gp)
         self.comm_gp = GaussianProcess(spec.gp)
-        self.feeding = FeedSchedule(self.id, team_size, spec.gp.peer_rounds,
-                                    spec.gp.catchup_rounds)
+        self.feeding = FeedSchedule(self.id, team_size, spec.gp.catchup_rounds)
         self.memory = policy.initial_memory() if policy is not None else None
         self.budget_initial = F32(budget)
         self.budget_left = F32(budget)

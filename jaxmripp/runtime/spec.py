@@ -12,7 +12,6 @@ from typing import Any, Mapping
 
 from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
-from jaxmripp.spec.feeding import UNCAPPED
 from jaxmripp.spec.layout import features
 from jaxmripp.spec.view import FACADE_TOPS
 
@@ -26,7 +25,6 @@ class GPSpec:
     noise: float
     catchup_rounds: int
     eval_grid: int
-    peer_rounds: int = UNCAPPED  # as exports from before the cap read
 
 
 # Settings removed from the configuration, each with the one value the runtime now builds
@@ -38,11 +36,10 @@ REMOVED = {
     ("safety", "takeoff_scan"): False,
     ("safety", "intents"): True,
     ("safety", "priority"): "id",
+    ("gp", "peer_rounds"): 255,  # uncapped: N - 1 for every team of at most 256 robots
 }
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
-_GP_DEFAULTS = {f.name: f.default for f in dataclasses.fields(GPSpec)
-                if f.default is not dataclasses.MISSING}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -170,8 +167,7 @@ class RuntimeSpec:
             relay=get("radio", "relay", bool),
             share_maps=get("radio", "share_maps", bool),
             collision_distance=get("radio", "collision_distance", float),
-            gp=GPSpec(**{name: get("gp", name, kind, _GP_DEFAULTS.get(name))
-                         for name, kind in _GP_FIELDS.items()}),
+            gp=GPSpec(**{name: get("gp", name, kind) for name, kind in _GP_FIELDS.items()}),
             utility_norm=get("reward", "utility_norm", float),
             max_steps=get("episode", "max_steps", int),
             flight=flight,

@@ -1,7 +1,7 @@
 """The GP feeding schedule: which known history entries enter which GP, each step.
 
 Each robot ingests its own newest pose first (its trace drop is r_e), then runs
-R = min(N - 1, `peer_rounds`) + `catchup_rounds` peer rounds: in each it takes the oldest
+R = N - 1 + `catchup_rounds` peer rounds: in each it takes the oldest
 pending pose of the peer with the largest backlog (ties: the nearest peer offset) into
 both GPs (the trace drop on the communication GP is r_c). A steady exchange needs N - 1
 rounds; the rest drain a backlog after radio silence. Every step does the same fixed
@@ -39,7 +39,7 @@ def feed_gps(state: EnvState, params: EnvParams):
 
     own_pending, own_pose, own_value = jax.vmap(lambda i: take(state.fed, i, i))(rows)
     fed = state.fed + jnp.diag(own_pending.astype(jnp.int32))
-    rounds = peer_rounds(n, cfg.peer_rounds, cfg.catchup_rounds)
+    rounds = peer_rounds(n, cfg.catchup_rounds)
     fed, pending, pose, value = _pick_peer_poses(state, fed, take, n, rounds)
     own = (own_pending, own_pose, own_value)
     peers = (pending, pose, value)

@@ -18,8 +18,8 @@ sensing and radio exchange and before the candidates are scored, robot i:
 1. Own pose first. If its own history has a pending entry (at most OWN_PER_ROUND: the
    pose it just reached), its oldest pending own entry enters the utility GP. Own poses
    never enter the communication GP.
-2. Then exactly R = min(N - 1, gp.peer_rounds) + gp.catchup_rounds peer rounds
-   (`peer_rounds` below; R = 0 for a lone robot). In each round it picks the peer with
+2. Then exactly R = N - 1 + gp.catchup_rounds peer rounds (`peer_rounds` below; R = 0 for
+   a lone robot). In each round it picks the peer with
    the largest backlog know[i, j] - fed[i, j]; ties go to the nearest peer offset, i.e.
    peers are ranked (i + 1) mod N, (i + 2) mod N, ..., (i + N - 1) mod N and the first
    maximum in that ranking wins. If the picked peer has a pending entry, its oldest
@@ -29,10 +29,7 @@ sensing and radio exchange and before the candidates are scored, robot i:
 
 Why a fixed R: JAX needs static shapes, so every round does the same work; N - 1 rounds
 keep up with a steady exchange (each peer brings one pose per round) and the extra
-catch-up rounds drain the backlog a radio silence left behind. With a cap
-gp.peer_rounds < N - 1 a robot's feeding costs the same for any larger team: it then
-feeds the largest backlogs first and leaves the rest pending (its GPs hold
-gp.capacity points, so a large team's poses of one step would fill them anyway).
+catch-up rounds drain the backlog a radio silence left behind.
 
 Points enter each GP in the order above. How a side batches them (the env inserts a
 round's points as blocks, `jaxmripp.sim.gp.add_block`) is free as long as the order is
@@ -44,11 +41,8 @@ This module imports nothing but the standard library.
 
 COMM_VALUE = 1.0  # target of every peer pose in the communication GP
 OWN_PER_ROUND = 1  # own history entries fed per round (one pose is reached per round)
-# gp.peer_rounds that never caps: teams have at most 256 robots (robots.count), so at most
-# 255 peers. The default, and what a policy exported before the cap existed reads as.
-UNCAPPED = 255
 
 
-def peer_rounds(team_size: int, cap: int, catchup_rounds: int) -> int:
-    """R = min(N - 1, cap) + catchup_rounds, none for a lone robot (nobody to feed)."""
-    return min(team_size - 1, cap) + catchup_rounds if team_size > 1 else 0
+def peer_rounds(team_size: int, catchup_rounds: int) -> int:
+    """R = N - 1 + catchup_rounds, none for a lone robot (nobody to feed)."""
+    return team_size - 1 + catchup_rounds if team_size > 1 else 0
