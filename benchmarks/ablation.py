@@ -10,7 +10,6 @@ Variants (the dotted overrides that remove the part):
     no_share  radio.share_maps=false       shared team maps (trained and evaluated without)
     no_view   policy.view_features=false   view-gain candidate features
     no_intent policy.intent_features=false peer-distance candidate feature
-    view_prior policy.view_prior=4         the next-best-view logit prior added instead
 
 Every variant is trained for each seed into RUNS/<preset>/<variant>-s<seed> (a finished run
 is reused, an interrupted one resumed, so the script can be stopped and started again),
@@ -58,7 +57,6 @@ VARIANTS = {
     "no_share": ("radio.share_maps=false",),
     "no_view": ("policy.view_features=false",),
     "no_intent": ("policy.intent_features=false",),
-    "view_prior": ("policy.view_prior=4",),
 }
 # Sections that only shape training; an override elsewhere changes the environment, so the
 # variant is evaluated with it too.

@@ -113,12 +113,6 @@ def test_bad_values_give_one_clear_line(override, needle):
     assert "\n" not in message
 
 
-def test_view_prior_needs_the_view_features():
-    with pytest.raises(ConfigError, match="policy.view_prior: got 2.0; allowed: 0 while"):
-        cfgmod.load(None, ["policy.view_prior=2", "policy.view_features=false"])
-    assert cfgmod.load(None, ["policy.view_prior=2"]).policy.view_prior == 2.0
-
-
 def test_kickstarting_needs_the_view_features():
     with pytest.raises(ConfigError, match="ppo.teacher_coef: got 1.0; allowed: 0 while"):
         cfgmod.load(None, ["ppo.teacher_coef=1", "policy.view_features=false"])

@@ -1,6 +1,5 @@
 """ActorCritic (Flax) and its NumPy runtime mirror."""
 
-import dataclasses
 import subprocess
 import sys
 import textwrap
@@ -23,7 +22,6 @@ from jaxmripp.learn.policy import (
     runtime_config,
 )
 from jaxmripp.runtime import NumpyPolicy
-from jaxmripp.spec import layout
 
 CONFIG = PolicyConfig(width=16, heads=2, layers=1, ff_mult=2)  # IPPO model under test
 CONFIG_DEEP = PolicyConfig(width=24, heads=3, layers=2, ff_mult=3)  # central-critic model
@@ -253,32 +251,11 @@ def test_forward_throughput(width):
           f"{rate:,.0f} passes/s on {jax.devices()[0].platform}")
 
 
-def test_view_prior_adds_the_normalised_view_gain_on_both_sides(ippo):
-    """With policy.view_prior the logits are the plain policy's plus a * g / max g over the
-    feasible candidates (g = view_unknown_per_cost, hand-computed here); the NumPy runtime
-    agrees; with the pointer silenced the argmax is the next-best-view choice."""
-    config = dataclasses.replace(CONFIG, view_prior=4.0)
-    model = ActorCritic(config)
-    _, plain_model, plain_params, plain_apply = ippo
-    params = {"params": {**plain_params["params"], "view_prior": np.float32(2.5)}}
-    obs, memory = random_obs(41), random_memory(42)
-    column = layout.FEATURES.index("view_unknown_per_cost")
-    obs = obs.replace(features=np.abs(obs.features))
-    _, logits, _ = map(np.asarray, batched(model)(params, memory, obs))
-    _, plain, _ = map(np.asarray, plain_apply(plain_params, memory, obs))
-    runtime = NumpyPolicy(flatten_params(params), runtime_config(config))
-    for b in range(2, BATCH):  # rows 0 and 1: no / one feasible candidate
-        mask = obs.mask[b]
-        gain = np.where(mask, obs.features[b, :, column], 0.0)
-        expected = plain[b] + 2.5 * gain / gain.max()
-        np.testing.assert_allclose(logits[b][mask], expected[mask], rtol=1e-5, atol=1e-5)
-        lg = runtime(memory[b], obs.features[b], mask, obs.robot_state[b])[1]
-        np.testing.assert_allclose(lg[mask], logits[b][mask], atol=1e-4)
-
-    silent = jax.tree.map(lambda x: x, params)
-    silent["params"]["pointer_query"] = jax.tree.map(np.zeros_like,
-                                                     params["params"]["pointer_query"])
-    _, logits, _ = map(np.asarray, batched(model)(silent, memory, obs))
-    for b in range(1, BATCH):
-        gain = np.where(obs.mask[b], obs.features[b, :, column], -1.0)
-        assert np.argmax(logits[b]) == np.argmax(gain)
+def test_the_runtime_refuses_a_policy_with_the_removed_view_prior(ippo):
+    """An export from before the next-best-view prior was removed: its logits would not
+    be this network's, so the runtime refuses it."""
+    _, _, params, _ = ippo
+    older = {**runtime_config(CONFIG), "view_prior": True}
+    with pytest.raises(ValueError, match="view_prior: a policy with the next-best-view prior"):
+        NumpyPolicy(flatten_params(params), older)
+    NumpyPolicy(flatten_params(params), {**older, "view_prior": False})

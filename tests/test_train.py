@@ -14,7 +14,6 @@ from jaxmripp import config as cfgmod, export, pipeline
 from jaxmripp.learn import ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
-from jaxmripp.learn.policy import VIEW_PRIOR_PARAM
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams
 from jaxmripp.parallel.local import host_devices_env, run_local
@@ -126,15 +125,6 @@ def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, 
         with pytest.raises(cfgmod.ConfigError) as err:
             problem()
         assert str(err.value).startswith("train.init_from: ") and "\n" not in str(err.value)
-
-
-def test_init_from_a_policy_without_the_view_prior_adds_it_at_its_weight(cfg, full_run):
-    _, state = full_run
-    assert VIEW_PRIOR_PARAM not in state.params["params"]
-    prior = cfgmod.load("configs/smoke.yaml", ["policy.view_prior=4", "train.updates=0"])
-    started = trainmod.Trainer.build(prior).init_from(state.params, "run").params
-    assert float(started["params"].pop(VIEW_PRIOR_PARAM)) == 4.0
-    assert _leaves_equal(started, state.params)
 
 
 def _random_observations(key, trainer, batch):

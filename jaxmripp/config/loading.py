@@ -37,6 +37,7 @@ REMOVED: dict[str, Any] = {
     "safety.intents": True,
     "safety.priority": "id",
     "gp.peer_rounds": 255,  # uncapped: N - 1 for every team of at most 256 robots
+    "policy.view_prior": 0.0,
 }
 
 

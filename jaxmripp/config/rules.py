@@ -98,7 +98,6 @@ RULES: dict[str, tuple] = {
     "policy.heads": _range(1, 64),
     "policy.layers": _range(0, 16),
     "policy.ff_mult": _range(1, 16),
-    "policy.view_prior": _NONNEG,
     "policy.ahead_branches": _range(0, 4096),
     "policy.ahead_discount": _NONNEG,
     "policy.ahead_facade_weight": _NONNEG,
@@ -204,9 +203,6 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("radio.collision_distance", r.collision_distance,
                          f"less than radio.range = {r.range}"))
     problems += _pad_checks(cfg)
-    if cfg.policy.view_prior > 0 and not cfg.policy.view_features:
-        problems.append(("policy.view_prior", cfg.policy.view_prior,
-                         "0 while policy.view_features is false (the prior reads them)"))
     if cfg.ppo.privileged_critic and cfg.ppo.algo != "mappo":
         problems.append(("ppo.privileged_critic", True,
                          "false while ppo.algo is ippo (only the central critic reads it)"))

@@ -131,7 +131,6 @@ class PolicyConfig:
     comm_features: bool = True  # False: ablation without communication-GP inputs
     view_features: bool = True  # False: ablation without the view-gain inputs
     intent_features: bool = True  # False: ablation without the peer-distance input
-    view_prior: float = 0.0  # > 0: next-best-view logit prior of this initial weight
     # > 0: one more input, the two-flight lookahead value of the robot's this many best
     # candidates (`ahead_rate`, jaxmripp.spec.layout), with these discount and facade weight
     ahead_branches: int = 0
@@ -192,8 +191,7 @@ class TrainConfig:
     blocks: int = 0
     # Start from these parameters instead of random ones (a fresh optimiser, update 0): a
     # training run's folder (its last checkpoint) or an export (policy.npz), e.g. to
-    # continue a policy trained with fewer robots; one trained without the view prior
-    # gets it at weight policy.view_prior. "" = random initialisation.
+    # continue a policy trained with fewer robots. "" = random initialisation.
     init_from: str = ""
     keep_checkpoints: int = 3
     # Where every update's metrics go (jaxmripp.learn.metrics): jsonl (metrics.jsonl),

@@ -1,19 +1,9 @@
-"""Network parameter trees: what a run started from other parameters (`train.init_from`)
-gains from its fresh initialisation, and where two trees of shapes differ."""
+"""Network parameter trees: where two trees of shapes differ, for the error of a run
+started from other parameters (`train.init_from`)."""
 
 from __future__ import annotations
 
 import jax
-
-from jaxmripp.learn.policy import VIEW_PRIOR_PARAM
-
-
-def with_prior_weight(params, fresh):
-    """`params` with fresh's view-prior weight added where fresh has one and it lacks it."""
-    inner, fresh_inner = params["params"], fresh["params"]
-    if VIEW_PRIOR_PARAM in fresh_inner and VIEW_PRIOR_PARAM not in inner:
-        return {"params": {**inner, VIEW_PRIOR_PARAM: fresh_inner[VIEW_PRIOR_PARAM]}}
-    return params
 
 
 def first_difference(want, got) -> str:

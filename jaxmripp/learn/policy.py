@@ -16,8 +16,7 @@ Forward pass (parameter names in quotes; `flatten_params` joins them with "/"):
     new_memory = "memory"(memory, s)                         GRU over the path so far
     d = "query"([s, new_memory])                             (W,)
     d = "decoder"(d, E)                                      pre-LN cross-attention + FF
-    logits = CLIP * tanh("pointer_query"(d) . "pointer_key"(E) / sqrt(W))
-             (+ "view_prior" * the VIEW PRIOR of jaxmripp.spec.layout), masked
+    logits = CLIP * tanh("pointer_query"(d) . "pointer_key"(E) / sqrt(W)), masked
     value = "value_out"(relu("value_hidden"(d)))             IPPO
           = "value_out"(relu("value_hidden"([relu("global_embed"(global_state)),
                                              robot_state])))  central critic (MAPPO)
@@ -51,8 +50,6 @@ LOGIT_CLIP = 10.0
 # The pointer query starts at 0.01 x the default (LeCun) weight scale, so the initial
 # policy is near uniform over feasible candidates (the usual PPO last-layer choice).
 POINTER_INIT_SCALE = 0.01
-# The learned weight of the VIEW PRIOR (policy.view_prior > 0), a top-level parameter.
-VIEW_PRIOR_PARAM = "view_prior"
 
 
 def masked_logits(logits: jax.Array, mask: jax.Array) -> jax.Array:
@@ -173,7 +170,6 @@ class ActorCritic(nn.Module):
         # the env may pad them with anything; zeroing keeps non-finite padding out of the
         # 0 * value products of the attention.
         features = jnp.where(mask[:, None], features, 0.0)
-        prior = layout.view_prior(features, mask, jnp) if cfg.view_prior > 0 else None
         keep = input_keep(self.config)
         if not keep.all():  # ablation: the policy never sees the dropped input groups
             features = features * jnp.asarray(keep, features.dtype)
@@ -202,9 +198,6 @@ class ActorCritic(nn.Module):
         )(decoded)
         pointer_keys = nn.Dense(width, name="pointer_key")(encoded)  # (L, W)
         logits = LOGIT_CLIP * jnp.tanh(pointer_keys @ pointer_query / math.sqrt(width))
-        if prior is not None:
-            weight = self.param(VIEW_PRIOR_PARAM, nn.initializers.constant(cfg.view_prior), ())
-            logits = logits + weight * prior
         logits = masked_logits(logits, mask)
 
         if self.central_critic:
@@ -252,7 +245,6 @@ def runtime_config(config: PolicyConfig, central_critic: bool = False) -> dict:
         "comm_features": config.comm_features,
         "view_features": config.view_features,
         "intent_features": config.intent_features,
-        "view_prior": config.view_prior > 0,
     }
 
 

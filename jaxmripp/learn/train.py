@@ -34,7 +34,7 @@ from jaxmripp import config as cfgmod
 from jaxmripp.config import Config
 from jaxmripp.learn import metrics as metricsmod, ppo, rundir
 from jaxmripp.learn.checkpoint import Checkpoints
-from jaxmripp.learn.params import first_difference, with_prior_weight
+from jaxmripp.learn.params import first_difference
 from jaxmripp.learn.policy import initial_memory
 from jaxmripp.parallel import progress
 from jaxmripp.parallel.mesh import DataParallel, data_parallel, is_main_process
@@ -190,11 +190,8 @@ class Trainer:
 
     def init_from(self, params, source: str | Path) -> TrainState:
         """`init` with the network parameters `params` (of `train.init_from` = `source`)
-        and an optimiser state made for them; raises ConfigError if their shapes differ.
-        A source without the view prior's weight (trained with `policy.view_prior` = 0)
-        starts this config's prior at its configured weight."""
+        and an optimiser state made for them; raises ConfigError if their shapes differ."""
         fresh = self.init()
-        params = with_prior_weight(params, fresh.params)
         want = jax.tree.map(lambda x: tuple(x.shape), fresh.params)
         got = jax.tree.map(lambda x: tuple(x.shape), params)
         if jax.tree.structure(want) != jax.tree.structure(got) or want != got:

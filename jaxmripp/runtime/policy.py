@@ -16,7 +16,7 @@ from typing import Mapping
 
 import numpy as np
 
-from jaxmripp.spec.layout import FEATURES, input_keep, view_prior
+from jaxmripp.spec.layout import FEATURES, input_keep
 
 LOGIT_CLIP = 10.0  # jaxmripp.learn.policy.LOGIT_CLIP
 LAYER_NORM_EPS = 1e-6  # flax.linen.LayerNorm default
@@ -40,7 +40,7 @@ def _relu(x: np.ndarray) -> np.ndarray:
     return np.maximum(x, 0.0)
 
 
-def _required_names(layers: int, central_critic: bool, prior: bool) -> list[str]:
+def _required_names(layers: int, central_critic: bool) -> list[str]:
     """Every weight name the forward pass reads (see jaxmripp.learn.policy's module doc)."""
     dense = lambda n: [f"{n}/kernel", f"{n}/bias"]  # noqa: E731
     norm = lambda n: [f"{n}/scale", f"{n}/bias"]  # noqa: E731
@@ -59,8 +59,6 @@ def _required_names(layers: int, central_critic: bool, prior: bool) -> list[str]
     names += dense("value_hidden") + dense("value_out")
     if central_critic:
         names += dense("global_embed")
-    if prior:
-        names.append("view_prior")
     return names
 
 
@@ -73,10 +71,12 @@ class NumpyPolicy:
         self.layers = int(config["layers"])
         self.ff_mult = int(config["ff_mult"])
         self.central_critic = bool(config.get("central_critic", False))
-        self.view_prior = bool(config.get("view_prior", False))
+        if config.get("view_prior", False):  # exported before the prior was removed
+            raise ValueError("view_prior: a policy with the next-best-view prior, a removed "
+                             "setting; allowed: one trained without it")
         if self.width % self.heads:
             raise ValueError(f"width {self.width} is not a multiple of heads {self.heads}")
-        missing = [n for n in _required_names(self.layers, self.central_critic, self.view_prior)
+        missing = [n for n in _required_names(self.layers, self.central_critic)
                    if n not in weights]
         if missing:
             raise KeyError(f"weights lack {len(missing)} arrays, e.g. {missing[:4]}")
@@ -106,7 +106,6 @@ class NumpyPolicy:
                              f"features {features.shape} / width {self.width}")
 
         features = np.where(mask[:, None], features, 0.0).astype(np.float32)
-        prior = view_prior(features, mask) if self.view_prior else None
         if not self.input_keep.all():  # ablation: dropped input groups are not inputs
             features = features * self.input_keep
         encoded = self._dense("embed", features)
@@ -122,8 +121,6 @@ class NumpyPolicy:
         pointer_query = self._dense("pointer_query", decoded)
         pointer_keys = self._dense("pointer_key", encoded)
         logits = LOGIT_CLIP * np.tanh(pointer_keys @ pointer_query / math.sqrt(self.width))
-        if prior is not None:
-            logits = logits + self.w["view_prior"] * prior
         logits = _masked(logits, mask)
 
         if self.central_critic:

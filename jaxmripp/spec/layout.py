@@ -50,11 +50,6 @@ the facade gain weighed by the robot's target belief, with prior strength
 `policy.belief_strength` (the rule is written in `jaxmripp.spec.belief`). The NumPy
 runtime computes them from the windows its robot's classifier reports and those that
 arrive with the map deltas (`jaxmripp.runtime.belief`).
-
-VIEW PRIOR (`policy.view_prior` w > 0): the policy adds a * g_i / max(max_j g_j, 1e-6) to
-candidate i's logit, g = the view_unknown_per_cost column with infeasible rows at 0 and a
-a learned scalar ("view_prior") that starts at w. Before training the policy's most
-probable candidate is then the next-best-view planner's; training learns what to change.
 """
 
 from __future__ import annotations
@@ -92,17 +87,6 @@ FEATURE_GROUPS = {
     "view": ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost"),
     "intent": ("peer_distance",),
 }
-
-
-VIEW_PRIOR_FEATURE = "view_unknown_per_cost"
-VIEW_PRIOR_FLOOR = 1e-6
-
-
-def view_prior(features, mask, xp=np):
-    """(L,) the VIEW PRIOR's normalised gain, g_i / max(max_j g_j, floor), for features
-    (L, F) and mask (L,); `xp` is numpy or jax.numpy, so both sides share this rule."""
-    gain = xp.where(mask, features[:, FEATURES.index(VIEW_PRIOR_FEATURE)], 0.0)
-    return gain / xp.maximum(xp.max(gain), xp.float32(VIEW_PRIOR_FLOOR))
 
 
 def view_value(unknown, facade, facade_weight: float):
