@@ -259,16 +259,14 @@ def _start_runner(cfg, trainer, dyn) -> ppo.Runner:
                                                 dyn))(dyn)
 
 
-# Either planner compiles into the rollout for one to two minutes: make test keeps the
-# oracle's choices (the next test), the search (test_lookahead.py) and the loss on stored
-# choices (test_kickstarting_...).
+# The search compiles into the rollout for one to two minutes: make test keeps the search
+# (test_lookahead.py) and the loss on stored choices (test_kickstarting_...).
 @pytest.mark.slow
-@pytest.mark.parametrize("teacher", ["nbv_ahead", "oracle"])
-def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teacher):
-    """ppo.teacher = nbv_ahead or oracle: the transitions carry that planner's choices,
-    feasible on the observations, and some differ from the one-step NBV choice; with the
-    weight at 0 the rollout skips the planner and stores NO_CHOICE."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", f"ppo.teacher={teacher}",
+def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
+    """ppo.teacher = nbv_ahead: the transitions carry that planner's choices, feasible on
+    the observations, and some differ from the one-step NBV choice; with the weight at 0
+    the rollout skips the planner and stores NO_CHOICE."""
+    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
                                              "eval.nbv_ahead_branches=4"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
@@ -284,27 +282,6 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teach
                                taught.obs.mask)
     assert np.any((nbv != taught.teacher) & taught.active)
     assert np.all(np.asarray(run(jnp.float32(0.0)).teacher) == ppo.NO_CHOICE)
-
-
-def test_the_oracle_teacher_takes_the_nbv_choice_once_every_window_is_found():
-    """Where no view reveals a new window the oracle teacher's tie-break decides: the
-    candidate with the largest nbv score; with windows left it follows the true world."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=oracle"])
-    trainer = trainmod.Trainer.build(cfg)
-    dyn = DynamicParams.from_config(cfg)
-    runner = _start_runner(cfg, trainer, dyn)
-    teach = jax.jit(jax.vmap(ppo._teacher(cfg, trainer.env_params),
-                             in_axes=(0, 0, 0, None)))
-    keys = jax.random.split(jax.random.PRNGKey(2), cfg.train.envs)
-    state = runner.env_state
-    found = state.replace(discovered=jnp.ones_like(state.discovered))
-    nbv = layout.masked_argmax(layout.nbv_score(np.asarray(runner.obs.features),
-                                                cfg.ppo.teacher_facade),
-                               np.asarray(runner.obs.mask))
-    active = np.asarray(runner.obs.mask).any(-1)
-    np.testing.assert_array_equal(np.asarray(teach(keys, runner.obs, found, dyn))[active],
-                                  nbv[active])
-    assert np.any(np.asarray(teach(keys, runner.obs, state, dyn))[active] != nbv[active])
 
 
 def test_gae_matches_a_hand_computed_example():

@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import env as envmod, lookahead, oracle, privileged
+from jaxmripp.sim import env as envmod, lookahead, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -210,21 +210,11 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
 def _teacher(cfg: Config, params: EnvParams):
     """choose(key, obs, state, dyn) -> the team's choices (N,) that the rollout stores for
-    the loss (ppo.teacher = nbv_ahead or oracle), or None where the loss derives the
-    choice from the observation itself (nbv)."""
+    the loss (ppo.teacher = nbv_ahead), or None where the loss derives the choice from the
+    observation itself (nbv)."""
     if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher == "nbv":
         return None
     e = cfg.eval
-    if cfg.ppo.teacher == "oracle":
-        def windows_first(key, obs, state, dyn):
-            # Among views that reveal as many windows, the one the next-best-view score
-            # (with the teacher's facade weight) prefers.
-            score = layout.nbv_score(obs.features, cfg.ppo.teacher_facade)
-            scale = jnp.max(jnp.where(obs.mask, jnp.abs(score), 0.0), axis=-1, keepdims=True)
-            tie = 0.4 * score / jnp.maximum(scale, 1e-6)
-            tie = tie + 1e-4 * jax.random.uniform(key, obs.mask.shape)
-            return oracle.choose_in_turn(obs.mask, state, params, tie)
-        return windows_first
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
         key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_ahead_discount,
         e.nbv_ahead_branches, e.nbv_ahead_flights)

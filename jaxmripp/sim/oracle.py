@@ -1,7 +1,7 @@
 """Ground-truth choices: robots in turn take the view that reveals the most windows nobody
 has found yet. They read the true world (`EnvState.world`, `discovered`), so they are
-upper references (the `oracle` and `oracle_ahead` planners) and a privileged teacher
-(`ppo.teacher = oracle`), never something a robot could compute.
+upper references (the `oracle` and `oracle_ahead` planners), never something a robot
+could compute.
 
 - `choose_in_turn`: one flight; the windows in view, or (`per_cost`) the windows in view
   per unit of flight cost as the next-best-view planners score views (`view.per_cost`).
