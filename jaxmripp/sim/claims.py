@@ -5,9 +5,8 @@ VIEW columns of its observation (`jaxmripp.spec.layout`) are recomputed on its m
 the voxels that the robots j < i it hears will look at (the unknown samples of their
 chosen poses, `view.unknown_in_view`) counted as seen, so a view a peer has taken is no
 longer a gain. Robot 0, and a robot that hears nobody who chose before it, sees the
-observation `observe` wrote. This is the sequential allocation of the `nbv_team`
-baseline made available to any decision rule, the trained policy's included
-(`policy.claims`).
+observation `observe` wrote. This is the sequential allocation of the `nbv_team` baseline
+and of the lookahead rules (`jaxmripp.sim.lookahead`), for any decision rule.
 
 One environment, no batch axes: callers `vmap` over environments.
 """
