@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install train test demo flight bench results ablations clean
+.PHONY: install train test demo flight bench results ablations docs check-docs clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -64,6 +64,14 @@ results: $(STAMP)
 ablations: $(STAMP)
 	$(BIN)/python benchmarks/ablation.py --preset default --out docs/results/ablation_default.md
 	$(BIN)/python benchmarks/ablation.py --preset paper --out docs/results/ablation_paper.md
+
+# The figures and tables of README.md and docs/ from the result files (docs/render.py);
+# check-docs changes nothing and fails where a document differs from its files.
+docs:
+	$(PY) docs/render.py
+
+check-docs:
+	$(PY) docs/render.py --check
 
 clean:
 	rm -rf $(VENV) runs
