@@ -157,6 +157,63 @@ def alternatives_table(root: Path, path: str) -> list[str]:
     return lines
 
 
+def _number(value) -> str:
+    if isinstance(value, int) or float(value).is_integer():
+        return f"{int(value):,}"
+    return f"{value:,.3g}" if abs(value) < 10 else f"{value:,.1f}"
+
+
+def benchmarks_table(root: Path, path: str) -> list[str]:
+    """The speed, safety and flight figures of the benchmark scripts, one per row."""
+    lines = ["| figure | what | value | machine | target | command |",
+             "|---|---|---|---|---|---|"]
+    for name, r in _json_lines(root / path).items():
+        lines.append(f"| `{name}` | {r['what']} | {_number(r['value'])} {r['unit']} | "
+                     f"{r['device']} | {r['target']} | `{r['command']}` |")
+    return lines
+
+
+def metrics_table(root: Path, path: str, prefix: str) -> list[str]:
+    """Every metric of a JSON-lines result file whose name starts with `prefix`."""
+    lines = ["| metric | value | unit | std | worlds |", "|---|---|---|---|---|"]
+    for name, r in _json_lines(root / path).items():
+        if name.startswith(prefix):
+            lines.append(f"| {name.removeprefix(prefix)} | {r['value']:.2f} | "
+                         f"{r.get('unit', '')} | {r.get('std', '-')} | {r.get('worlds', '-')} |")
+    if len(lines) == 2:
+        raise RenderError(f"{path}: no metric starts with {prefix}")
+    return lines + ["", f"({path})"]
+
+
+def scale_grid(root: Path, path: str) -> list[str]:
+    """benchmarks/scale.py --grid's output (`scale.grid.PLANNER.EXCHANGE.gG.nN`, % found)
+    as one row per planner and exchange, one column per world size and team size."""
+    cells, columns = {}, {}
+    for name, r in _json_lines(root / path).items():
+        planner, exchange, size, team = name.removeprefix("scale.grid.").split(".")
+        cells[(planner, exchange), (size, team)] = r["value"]
+        columns[int(size[1:]), int(team[1:])] = (size, team)
+    order = [columns[k] for k in sorted(columns)]
+    rows = list(dict.fromkeys(row for row, _ in cells))
+    lines = ["| planner | radio | " + " | ".join(f"G = {g[1:]}, N = {n[1:]}" for g, n in order)
+             + " |", "|---|---" + "|---" * len(order) + "|"]
+    lines += [f"| {p} | {x} | " + " | ".join(f"{cells[(p, x), c]:.2f}" if ((p, x), c) in cells
+                                             else "-" for c in order) + " |" for p, x in rows]
+    return lines + ["", f"% found, mean over the worlds of each cell ({path})."]
+
+
+def markdown_table(root: Path, path: str, number: str) -> list[str]:
+    """The `number`-th (from 1) table of a results.md an evaluation wrote, with the heading
+    above it."""
+    text = (root / path).read_text().split("\n\n")
+    tables = [i for i, part in enumerate(text) if part.startswith("|")]
+    if not 1 <= int(number) <= len(tables):
+        raise RenderError(f"{path}: has {len(tables)} tables, not {number}")
+    i = tables[int(number) - 1]
+    heading = [text[i - 1], ""] if i and text[i - 1].startswith("#") else []
+    return [*heading, *text[i].splitlines(), "", f"({path})"]
+
+
 def include(root: Path, path: str) -> list[str]:
     """A file that a command wrote, as it is."""
     return (root / path).read_text().rstrip("\n").splitlines()
@@ -164,7 +221,8 @@ def include(root: Path, path: str) -> list[str]:
 
 BLOCKS = {"summary": summary_table, "policies": policies_table,
           "generalize": generalize_table, "alternatives": alternatives_table,
-          "include": include}
+          "metrics": metrics_table, "benchmarks": benchmarks_table,
+          "scale_grid": scale_grid, "table": markdown_table, "include": include}
 
 
 # ----- documents -----------------------------------------------------------------------------
