@@ -275,20 +275,47 @@ def differences(root: Path = ROOT, write: bool = False) -> list[str]:
     return found
 
 
+LINK = re.compile(r"\]\((?!https?://|mailto:)(?P<target>[^)#\s]*)(?:#(?P<anchor>[^)\s]*))?\)")
+
+
+def _anchors(doc: Path) -> set[str]:
+    """GitHub's anchors of a markdown file's headings."""
+    text = re.sub(r"```.*?```", "", doc.read_text(), flags=re.S)
+    headings = re.findall(r"^#+ (.*)$", text, flags=re.M)
+    return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-") for h in headings}
+
+
+def dead_links(root: Path = ROOT) -> list[str]:
+    """`doc:line: target` of each relative link whose file or heading does not exist."""
+    found = []
+    for doc in documents(root):
+        text = doc.read_text()
+        for match in LINK.finditer(text):
+            target = doc.parent / match["target"] if match["target"] else doc
+            anchor = match["anchor"]
+            if not target.exists() or (anchor and target.suffix == ".md"
+                                       and anchor not in _anchors(target)):
+                line = text.count("\n", 0, match.start()) + 1
+                found.append(f"{doc.relative_to(root)}:{line}: no such "
+                             f"{'heading' if target.exists() else 'file'}: {match[0][2:-1]}")
+    return found
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--check", action="store_true",
                         help="change nothing; exit 1 if any generated part differs")
     args = parser.parse_args(argv)
     try:
-        found = differences(write=not args.check)
+        changed = differences(write=not args.check)
+        found = (changed if args.check else []) + dead_links()
     except RenderError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    if args.check and found:
+    if found:
         print("\n".join(found))
-        print(f"error: {len(found)} generated lines differ from the result files; "
-              "run `make docs`", file=sys.stderr)
+        print(f"error: {len(found)} generated lines differ from the result files or links "
+              "lead nowhere; `make docs` re-renders the figures", file=sys.stderr)
         return 1
     print(f"{'checked' if args.check else 'rendered'}: "
           f"{', '.join(str(d.relative_to(ROOT)) for d in documents(ROOT))}")

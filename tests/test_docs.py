@@ -18,8 +18,20 @@ _spec.loader.exec_module(render)
 RESULTS = "docs/results/default/quality.jsonl"
 
 
-def test_the_documents_agree_with_their_result_files():
+def test_the_documents_agree_with_their_result_files_and_their_links_resolve():
     assert render.differences(ROOT) == []
+    assert render.dead_links(ROOT) == []
+
+
+def test_a_link_to_a_missing_file_or_heading_is_reported(tmp_path):
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "a.md").write_text("# A page\n\n## The `b` part: why\n")
+    (tmp_path / "README.md").write_text(
+        "[ok](docs/a.md) [ok](docs/a.md#the-b-part-why) [web](https://x.org/none)\n"
+        "[gone](docs/none.md)\n[no heading](docs/a.md#nowhere)\n")
+    assert render.dead_links(tmp_path) == [
+        "README.md:2: no such file: docs/none.md",
+        "README.md:3: no such heading: docs/a.md#nowhere"]
 
 
 @pytest.mark.parametrize("like, value, written", [
