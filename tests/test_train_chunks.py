@@ -151,3 +151,23 @@ def test_the_trained_smoke_policy_finds_more_than_its_initial_policy(cfg, full_r
     trained = np.asarray(found(jax.device_get(state.params)))
     assert trained.mean() > 1.5 * initial.mean()
     assert (trained > initial).sum() > 2 * (trained < initial).sum()
+
+
+def test_a_stage_trains_into_its_run_dir_from_the_folder_before(full_run, tmp_path, capsys):
+    """`train.py --run-dir B train.init_from=A`, as training stages chain: the run is made
+    in exactly B (new, or empty as here), nothing beside it, and starts from A's
+    parameters."""
+    from jaxmripp.cli import train as train_cli  # noqa: PLC0415
+
+    run_a, _ = full_run
+    stage = tmp_path / "stages" / "b"
+    stage.mkdir(parents=True)
+    status = train_cli.main(["--config", "configs/smoke.yaml", "--run-dir", str(stage),
+                             "--no-eval", "--quiet", "train.updates=0",
+                             f"train.init_from={run_a}"])
+    out = capsys.readouterr().out
+    assert status == 0
+    assert f"run folder: {stage}\n" in out and f"parameters from {run_a}\n" in out
+    assert [p.name for p in stage.parent.iterdir()] == ["b"]
+    assert cfgmod.load(stage / "config.yaml") == cfgmod.load(
+        "configs/smoke.yaml", ["train.updates=0", f"train.init_from={run_a}"])
