@@ -172,17 +172,17 @@ def test_bench_runs_a_script_with_its_arguments(capsys, tmp_path, monkeypatch):
 
 
 def test_init_from_in_the_checkout_resolves_from_anywhere(tmp_path, monkeypatch):
-    """curriculum_n8 starts from pretrained/default_ppo, a path in the repository: from
-    another folder it is the checkout's, while a folder of that name in the working
-    directory comes first."""
+    """train.init_from=pretrained/default_fast, a path in the repository: from another
+    folder it is the checkout's, while a folder of that name in the working directory comes
+    first."""
     monkeypatch.chdir(tmp_path)
     from jaxmripp import pipeline  # noqa: PLC0415
 
-    cfg = cfgmod.load("curriculum_n8")
-    assert pipeline.initial_source(cfg) == REPO / "pretrained" / "default_ppo"
+    cfg = cfgmod.load("default", ["train.init_from=pretrained/default_fast"])
+    assert pipeline.initial_source(cfg) == REPO / "pretrained" / "default_fast"
     pipeline.check_initial_params(cfg)
-    (tmp_path / "pretrained" / "default_ppo").mkdir(parents=True)
-    assert pipeline.initial_source(cfg) == Path("pretrained/default_ppo")
+    (tmp_path / "pretrained" / "default_fast").mkdir(parents=True)
+    assert pipeline.initial_source(cfg) == Path("pretrained/default_fast")
 
 
 @pytest.mark.slow

@@ -92,7 +92,7 @@ def test_a_policy_with_the_lookahead_input_exports_and_decides_onboard(flat_para
     spec = exported.spec
     assert (spec.ahead_branches, spec.ahead_discount) == (4, 1.5)
     assert spec.features == layout.FEATURES + ("ahead_rate",) and exported.policy.n_features == 22
-    older = weights.load(REPO / "pretrained/paper_default_gain").spec  # exported before
+    older = weights.load(REPO / "pretrained/default_fast").spec  # exported before
     assert older.ahead_branches == 0 and older.gain[2:] == (True, "nearby")  # these fields
     assert older.sector_split == "angle"
 

@@ -59,8 +59,8 @@ def listing() -> str:
 
 def in_checkout(path: str | Path) -> Path:
     """A relative path missing from the working directory but present in the source
-    checkout (e.g. `pretrained/default_ppo`, which `train.init_from` of a curriculum preset
-    names) as the checkout's; otherwise the path as given."""
+    checkout (e.g. `pretrained/default` as a `train.init_from`) as the checkout's; otherwise
+    the path as given."""
     path = Path(path)
     if path.is_absolute() or path.exists() or not (CHECKOUT / path).exists():
         return path
