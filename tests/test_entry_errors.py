@@ -27,7 +27,7 @@ from jaxmripp.learn.checkpoint import Checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "pretrained" / "default_fast"
-SMOKE = REPO / "configs" / "smoke.yaml"
+SMOKE = REPO / "tests" / "smoke.yaml"
 for path in (REPO, REPO / "benchmarks"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))

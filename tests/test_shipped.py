@@ -112,7 +112,7 @@ def test_rules_of_a_quality_result_name_its_worlds_and_trials():
     meta = json.loads((REPO / "pretrained/default_fast/metadata.json").read_text())
     rules = meta["evaluations"][0]["rules"]
     assert (rules["worlds"], rules["trials"], rules["config"]) == (
-        25, 10, "configs/eval_paper.yaml")
+        25, 10, "configs/protocol_table1.yaml")
     assert "eval.radio_ranges=[.inf, 0.1]" in rules["overrides"]
 
 

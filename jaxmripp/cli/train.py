@@ -3,9 +3,9 @@
 
 A new run goes to RUNS/<train.name> (--runs, default runs; -2, -3, ... where that exists),
 or with --run-dir to exactly the folder named, so that training stages chain by folder,
-each starting from the one before:
-  jaxmripp train --config STAGE1 --run-dir runs/stage1
-  jaxmripp train --config STAGE2 --run-dir runs/stage2 train.init_from=runs/stage1"""
+each starting from the one before (`make scale` runs the whole chain):
+  jaxmripp train --config recipe_scale_n8 --run-dir runs/scale_n8 train.init_from=runs/scale_n3
+  jaxmripp train --config recipe_scale --run-dir runs/scale train.init_from=runs/scale_n8"""
 
 import argparse
 import sys
@@ -14,6 +14,7 @@ from pathlib import Path
 from jaxmripp import allocator
 from jaxmripp import config as cfgmod
 from jaxmripp import folders, pipeline
+from jaxmripp.config import presets
 from jaxmripp.config.cli import (ArgumentParser, add_config_arguments, fail, presets_epilog,
                                  print_config)
 from jaxmripp.learn import train as trainmod
@@ -39,7 +40,7 @@ def parser(prog: str | None = None) -> ArgumentParser:
     out.add_argument("--no-eval", action="store_true", help="skip the final evaluation")
     out.add_argument("--quiet", action="store_true",
                      help="no compilation lines, progress bars or line per chunk")
-    add_config_arguments(out, "default")
+    add_config_arguments(out, presets.DEFAULT)
     launch.add_arguments(out)
     return out
 
