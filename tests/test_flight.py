@@ -185,7 +185,7 @@ def test_truncate_and_takeoff_scan_in_episodes():
     from jaxmripp.sim import env as envmod, episode
     from jaxmripp.sim.params import DynamicParams, EnvParams
 
-    cfg = config.load("configs/smoke.yaml", ["safety.flight=truncate",
+    cfg = config.load("tests/smoke.yaml", ["safety.flight=truncate",
                                              "safety.takeoff_scan=true", "robots.count=3"])
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     planner = baselines.random_planner()

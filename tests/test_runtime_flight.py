@@ -411,11 +411,11 @@ def test_export_header_carries_safety_and_other_flight_modes_and_map_reaches_are
     header = export.header(CFG)
     assert header["config"]["safety"] == dataclasses.asdict(CFG.safety)
     assert header["config"]["robots"]["pad_spacing"] == CFG.robots.pad_spacing
-    cfg = config.load(REPO / "configs/smoke.yaml", ["safety.priority=budget",
+    cfg = config.load(REPO / "tests/smoke.yaml", ["safety.priority=budget",
                                                     "safety.intents=false"])
     assert (spec_of(cfg).priority, spec_of(cfg).intents) == ("budget", False)
     assert not spec.escape
-    assert spec_of(config.load(REPO / "configs/smoke.yaml", ["safety.escape=true"])).escape
+    assert spec_of(config.load(REPO / "tests/smoke.yaml", ["safety.escape=true"])).escape
     without = export.header(CFG)
     del without["config"]["safety"]["escape"]  # optional: absent means off
     assert not RuntimeSpec.from_header(json.loads(json.dumps(without))).escape

@@ -24,7 +24,7 @@ from jaxmripp.spec import layout, sectors as sectors_spec
 
 @pytest.fixture(scope="module")
 def cfg():
-    return cfgmod.load("configs/smoke.yaml")
+    return cfgmod.load("tests/smoke.yaml")
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +94,7 @@ def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
 
 def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
     run_dir, _ = full_run
-    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32"])
+    wide = cfgmod.load("tests/smoke.yaml", ["policy.width=32"])
     template = trainmod.Trainer.build(wide).abstract_state()
     checkpoints = Checkpoints(run_dir / "checkpoints", 3)
     with pytest.raises(CheckpointError) as err:
@@ -106,7 +106,7 @@ def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
 def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, tmp_path):
     run_dir, state = full_run
     # Another team size: the attention policy's parameters do not depend on it.
-    three = cfgmod.load("configs/smoke.yaml", ["robots.count=3", "train.updates=0",
+    three = cfgmod.load("tests/smoke.yaml", ["robots.count=3", "train.updates=0",
                                                f"train.init_from={run_dir}"])
     started = trainmod.train(three, tmp_path / "from_run", log=lambda _: None,
                              initial_params=pipeline.initial_params(three))
@@ -118,7 +118,7 @@ def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, 
     assert _leaves_equal(trainmod.Trainer.build(three).init_from(exported, "export").params,
                          state.params)
     # Errors name the key: a source that is neither, another network, none passed.
-    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32", "train.updates=0"])
+    wide = cfgmod.load("tests/smoke.yaml", ["policy.width=32", "train.updates=0"])
     for problem in (lambda: pipeline.initial_params(cfgmod.from_dict(
                         {"train": {"init_from": str(tmp_path / "nowhere")}}, wide)),
                     lambda: trainmod.Trainer.build(wide).init_from(exported, "export"),
@@ -132,7 +132,7 @@ def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, 
 def test_init_from_a_policy_without_the_view_prior_adds_it_at_its_weight(cfg, full_run):
     _, state = full_run
     assert VIEW_PRIOR_PARAM not in state.params["params"]
-    prior = cfgmod.load("configs/smoke.yaml", ["policy.view_prior=4", "train.updates=0"])
+    prior = cfgmod.load("tests/smoke.yaml", ["policy.view_prior=4", "train.updates=0"])
     started = trainmod.Trainer.build(prior).init_from(state.params, "run").params
     assert float(started["params"].pop(VIEW_PRIOR_PARAM)) == 4.0
     assert _leaves_equal(started, state.params)
@@ -182,7 +182,7 @@ def _random_observations(key, trainer, batch):
 
 @pytest.mark.parametrize("algo", ["ippo", pytest.param("mappo", marks=pytest.mark.slow)])
 def test_ppo_loss_falls_on_a_fixed_batch(algo):
-    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.algo={algo}"])
+    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.algo={algo}"])
     trainer = trainmod.Trainer.build(cfg)
     state = trainer.init()
     steps, envs, robots = 4, cfg.train.envs, cfg.robots.count
@@ -224,9 +224,9 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
     add nothing (and no NaN). The weight falls linearly to 0 over ppo.teacher_updates."""
     facade, coef = 3.0, 0.7  # ppo.teacher_facade: not the default 2
-    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
+    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                              f"ppo.teacher_facade={facade}"])
-    trainer = trainmod.Trainer.build(cfgmod.load("configs/smoke.yaml"))
+    trainer = trainmod.Trainer.build(cfgmod.load("tests/smoke.yaml"))
     params = trainer.init().params
     envs, robots = cfg.train.envs, cfg.robots.count
     obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
@@ -283,13 +283,13 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
                            zeros, value, moments, cfg.ppo, ppo.Teacher.at(cfg.ppo, 0))
     assert float(parts["imitation"]) == 0.0
 
-    decaying = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
+    decaying = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                                   "ppo.teacher_updates=8"]).ppo
     weights = [float(ppo.Teacher.at(decaying, u).weight) for u in (0, 2, 8, 20)]
     np.testing.assert_allclose(weights, [coef, 0.75 * coef, 0.0, 0.0], rtol=1e-6)
     assert float(ppo.Teacher.at(cfg.ppo, 20).weight) == np.float32(coef)
     # Compiled, as the rollout computes it: exactly 0 from teacher_updates on.
-    fifty = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
+    fifty = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
     jitted = jax.jit(lambda u: ppo.Teacher.at(fifty, u).weight)
     assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
 
@@ -309,7 +309,7 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teach
     """ppo.teacher = nbv_ahead or oracle: the transitions carry that planner's choices,
     feasible on the observations, and some differ from the one-step NBV choice; with the
     weight at 0 the rollout skips the planner and stores NO_CHOICE."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", f"ppo.teacher={teacher}",
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", f"ppo.teacher={teacher}",
                                              "eval.nbv_ahead_branches=4"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
@@ -330,7 +330,7 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teach
 def test_the_oracle_teacher_takes_the_nbv_choice_once_every_window_is_found():
     """Where no view reveals a new window the oracle teacher's tie-break decides: the
     candidate with the largest nbv score; with windows left it follows the true world."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=oracle"])
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=oracle"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
     runner = _start_runner(cfg, trainer, dyn)
@@ -361,7 +361,7 @@ def test_gae_matches_a_hand_computed_example():
 
 
 def _smoke_command(runs) -> list[str]:
-    return ["train.py", "--config", "configs/smoke.yaml", "--no-eval", "--runs", str(runs)]
+    return ["train.py", "--config", "tests/smoke.yaml", "--no-eval", "--runs", str(runs)]
 
 
 def _final_params(cfg, run_dir):
@@ -407,15 +407,15 @@ def test_training_updates_cycle_through_the_radio_ranges_and_rollouts_keep_to_se
     train.sectors: at a short range every robot samples from the sector rule's mask
     (offering nothing outside its sector while its own has unknown views), which the plain
     rollout does not."""
-    cyc = cfgmod.load("configs/smoke.yaml", ["train.radio_ranges=[0.1, .inf]"])
+    cyc = cfgmod.load("tests/smoke.yaml", ["train.radio_ranges=[0.1, .inf]"])
     base = DynamicParams.from_config(cyc)
     ranges = [float(trainmod.update_dynamic(cyc, base, u).radio_range) for u in range(3)]
     assert ranges == [np.float32(0.1), np.inf, np.float32(0.1)]
     traced = jax.jit(lambda u: trainmod.update_dynamic(cyc, base, u).radio_range)
     assert [float(traced(jnp.int32(u))) for u in (3, 4)] == [np.inf, np.float32(0.1)]
-    assert trainmod.update_dynamic(cfgmod.load("configs/smoke.yaml"), base, 5) is base
+    assert trainmod.update_dynamic(cfgmod.load("tests/smoke.yaml"), base, 5) is base
 
-    cfg = cfgmod.load("configs/smoke.yaml", ["train.sectors=true", "train.rollout_steps=6"])
+    cfg = cfgmod.load("tests/smoke.yaml", ["train.sectors=true", "train.rollout_steps=6"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
     params = trainer.init().params
