@@ -114,19 +114,27 @@ def written_beside(path: Path) -> tuple[str | None, dict | None]:
     return command, rules
 
 
+# Settings a training command may give beside its preset: they choose the run's folder,
+# its random seed and where it starts from, not the recipe.
+COMMAND_OVERRIDES = ("name", "seed", "init_from")
+
+
 def training_command(cfg: cfgmod.Config, shipped_config: Path) -> str:
-    """`python train.py --config X`: X the name of the first packaged preset that loads to
-    `cfg` but for train.name (which only names the run's folder), else the shipped
-    config.yaml (which loads to `cfg` exactly)."""
+    """`jaxmripp train --config X [train.seed=S] [train.init_from=DIR]`: X the name of the
+    first packaged preset that loads to `cfg` but for `COMMAND_OVERRIDES` (train.name only
+    names the run's folder, so it is left out), else the shipped config.yaml (which loads
+    to `cfg` exactly)."""
     for name in presets.names():
         try:
             preset = cfgmod.load(name)
         except cfgmod.ConfigError:
             continue
-        if dataclasses.replace(preset, train=dataclasses.replace(
-                preset.train, name=cfg.train.name)) == cfg:
-            return f"python train.py --config {name}"
-    return f"python train.py --config {shipped_config}"
+        kept = {key: getattr(cfg.train, key) for key in COMMAND_OVERRIDES}
+        if dataclasses.replace(preset, train=dataclasses.replace(preset.train, **kept)) == cfg:
+            overrides = [f"train.{key}={kept[key]}" for key in COMMAND_OVERRIDES[1:]
+                         if kept[key] != getattr(preset.train, key)]
+            return " ".join(["jaxmripp train --config", name, *overrides])
+    return f"jaxmripp train --config {shipped_config}"
 
 
 def metadata(cfg: cfgmod.Config, trained: Path, config_path: Path, checkpoint: str,

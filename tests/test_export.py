@@ -249,10 +249,16 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path, monkeypa
                                     "python benchmarks/quality.py", "rules": rules,
                                     "figures": {"quality.policy_pct": 41.5}}]
     # The preset the run's config is, by name; without one, the shipped config.yaml.
-    assert meta["command"] == "python train.py --config tiny"
+    assert meta["command"] == "jaxmripp train --config tiny"
+    # another seed or start is the same recipe, named as overrides
+    reseeded = dataclasses.replace(cfg, train=dataclasses.replace(
+        cfg.train, seed=cfg.train.seed + 3, init_from="runs/stage_1"))
+    assert ship.training_command(reseeded, out / "config.yaml") == (
+        f"jaxmripp train --config tiny train.seed={cfg.train.seed + 3} "
+        "train.init_from=runs/stage_1")
     unmatched = dataclasses.replace(cfg, policy=dataclasses.replace(cfg.policy, width=24))
     assert ship.training_command(unmatched, out / "config.yaml") == (
-        f"python train.py --config {out / 'config.yaml'}")
+        f"jaxmripp train --config {out / 'config.yaml'}")
     assert "init_from" not in meta
     assert {"policy.npz", "policy.json", "config.yaml", "learning_curve.png"} <= {
         p.name for p in out.iterdir()}
@@ -323,6 +329,6 @@ def test_each_shipped_policy_loads_and_flies_by_its_config(name):
     from_config = export.runtime_spec(cfg)
     assert shipped.spec == from_config
     meta = json.loads((folder / "metadata.json").read_text())
-    assert meta["command"].startswith("python train.py --config ")
+    assert meta["command"].startswith("jaxmripp train --config ")
     assert meta["train_minutes"] > 0 and meta["updates"] > 0
     assert len(meta["commit"]) == 40

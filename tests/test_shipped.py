@@ -50,10 +50,11 @@ def test_training_figures_are_the_folders_own(name):
     ended = sum(r.get("episodes", 1) for r in last)
     found = sum(r["discovered"] * r.get("episodes", 1) for r in last)
     assert meta["training_discovered"] == round(found / ended, 4)
-    prefix = "python train.py --config "
+    prefix = "jaxmripp train --config "
     assert meta["command"].startswith(prefix)
-    source = meta["command"][len(prefix):]  # a preset's name or a path
-    trained = cfgmod.load(source if presets.is_name(source) else REPO / source)
+    # a preset's name or a path, then the seed and start as overrides
+    source, *overrides = meta["command"][len(prefix):].split()
+    trained = cfgmod.load(source if presets.is_name(source) else REPO / source, overrides)
     # but for train.name, which only names the run's folder
     assert dataclasses.replace(trained, train=dataclasses.replace(
         trained.train, name=cfg.train.name)) == cfg
