@@ -215,3 +215,16 @@ def test_train_as_a_process_from_outside_the_repository(tmp_path):
     expected = {(key, r["update"]): [np.float32(value)] for r in records
                 for key, value in r.items() if key != "update"}
     assert scalars(run_dir / metricsmod.TENSORBOARD_DIR) == expected
+
+
+def test_eval_help_names_the_folders_results_go_to_by_default(capsys):
+    from jaxmripp import pipeline
+
+    _, out, _ = run(capsys, ["eval", "--help"])
+    text = " ".join(out.split())
+    # a shipped export stays as shipped: its evaluation goes under runs/
+    assert "runs/<folder name>/eval for a shipped export" in text
+    assert pipeline.eval_dir("protocol_table1", [REPO / "pretrained" / "default"]) == Path(
+        "runs/default/eval")
+    assert "runs/<config name>/eval" in text
+    assert pipeline.eval_dir("protocol_table1", []) == Path("runs/protocol_table1/eval")

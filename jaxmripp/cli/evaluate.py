@@ -4,8 +4,9 @@
 Without --policy only the baselines in eval.planners run. Each --policy restores a trained
 run (its config.yaml and checkpoints) or a shipped export under the given name; repeat it
 to compare several (e.g. the variants benchmarks/ablation.py trains). Results go to DIR
-(default: the first policy's RUN_DIR/eval, else runs/<config name>/eval): results.md,
-runs.csv, runs.json, summary.json and plots.
+(default: the first policy's RUN_DIR/eval for a training run, runs/<folder name>/eval for
+a shipped export such as pretrained/default, which stays as shipped; without --policy
+runs/<config name>/eval): results.md, runs.csv, runs.json, summary.json and plots.
 """
 
 import argparse
