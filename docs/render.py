@@ -113,15 +113,18 @@ HEADLINES = ("quality.policy_pct", "scale.pct.policy.relay")
 
 def policies_table(root: Path) -> list[str]:
     """The shipped policies: how each was trained and its headline figure."""
-    lines = ["| policy | trained by | minutes (2 cores) | updates | % found | figure | "
-             "results |", "|---|---|---|---|---|---|---|"]
+    lines = ["| policy | trained by | seed | minutes (2 cores) | updates | % found | figure | "
+             "results |", "|---|---|---|---|---|---|---|---|"]
     for meta in sorted((root / "pretrained").glob("*/metadata.json")):
         data = json.loads(meta.read_text())
         evaluation = (data.get("evaluations") or [{}])[0]
         figures = evaluation.get("figures", {})
         metric = next((m for m in HEADLINES if m in figures), None)
         minutes = data.get("train_minutes")
+        # an override names the seed; a preset keeps train.seed's default, 0
+        seed = re.search(r"train\.seed=(\d+)", data["command"])
         lines.append(f"| `{meta.parent.name}` | `{data['command']}` | "
+                     f"{seed[1] if seed else '-' if data['command'].endswith('.yaml') else 0} | "
                      f"{'-' if minutes is None else f'{minutes:.1f}'} | {data['updates']} | "
                      f"{'-' if metric is None else f'{figures[metric]:.2f}'} | "
                      f"{metric or '-'} | "
