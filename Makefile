@@ -3,7 +3,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: install train test demo flight bench results ablations clean
+.PHONY: install train scale test demo flight bench results ablations docs check-docs clean
 
 $(BIN)/python:
 	$(PY) -m venv $(VENV) || python3 -m venv $(VENV)
@@ -16,7 +16,20 @@ $(STAMP): $(BIN)/python pyproject.toml
 install: $(STAMP)
 
 train: $(STAMP)
-	$(BIN)/python train.py --config configs/default.yaml
+	$(BIN)/python train.py --config recipe_quick
+
+# The curriculum of pretrained/scale, each stage into a fixed folder and starting from the
+# folder before (about 70 minutes on a 2-core CPU; a stage whose folder exists and is not
+# empty stops it): 3 robots by PPO alone, then 8 (recipe_scale_n8), then 16 in the 3x
+# world (recipe_scale).
+SCALE_N3 := ppo.teacher_coef=0 ppo.teacher_updates=0 train.updates=200 train.updates_per_chunk=10
+
+scale: $(STAMP)
+	$(BIN)/jaxmripp train --config recipe_quick --run-dir runs/scale_n3 --no-eval $(SCALE_N3)
+	$(BIN)/jaxmripp train --config recipe_scale_n8 --run-dir runs/scale_n8 --no-eval \
+	  train.init_from=runs/scale_n3
+	$(BIN)/jaxmripp train --config recipe_scale --run-dir runs/scale train.init_from=runs/scale_n8
+	@echo "ship it: $(BIN)/python -m jaxmripp.ship runs/scale pretrained/scale"
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q -x -n 2 --dist loadfile --no-loadscope-reorder
@@ -34,7 +47,7 @@ demo: $(STAMP)
 	@flags="$(DEMO_XLA)"; \
 	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/python -c "import jax.numpy as j; j.zeros(1).block_until_ready()" \
 	  >/dev/null 2>&1 || flags=""; \
-	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/jaxmripp eval --config eval_paper \
+	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/jaxmripp eval --config protocol_table1 \
 	  --policy policy=pretrained/default_fast --out $(DEMO_OUT) --no-timing \
 	  "eval.planners=[policy,nbv_team,random]" "eval.radio_ranges=[.inf]" eval.worlds=5 \
 	  eval.trials=2 "eval.pairs=[policy:nbv_team,policy:random]" && \
@@ -51,7 +64,7 @@ flight: $(STAMP)
 bench: $(STAMP)
 	for b in sensing gp env runtime safety; do $(BIN)/python benchmarks/$$b.py || exit 1; done
 	$(BIN)/python benchmarks/train.py --envs 256
-	$(BIN)/python benchmarks/train.py --envs 256 --no-update --config configs/train_paper.yaml
+	$(BIN)/python benchmarks/train.py --envs 256 --no-update --config benchmarks/train_paper.yaml
 
 # The tables and plots of docs/results/ from the shipped policies (about 20 minutes each on
 # a 2-core CPU); the per-episode files are left out of the repository.
@@ -64,6 +77,14 @@ results: $(STAMP)
 ablations: $(STAMP)
 	$(BIN)/python benchmarks/ablation.py --preset default --out docs/results/ablation_default.md
 	$(BIN)/python benchmarks/ablation.py --preset paper --out docs/results/ablation_paper.md
+
+# The figures and tables of README.md and docs/ from the result files (docs/render.py);
+# check-docs changes nothing and fails where a document differs from its files.
+docs:
+	$(PY) docs/render.py
+
+check-docs:
+	$(PY) docs/render.py --check
 
 clean:
 	rm -rf $(VENV) runs

@@ -1,4 +1,4 @@
-"""Evaluate planners: `python eval.py --config configs/eval_paper.yaml [--policy NAME=RUN_DIR
+"""Evaluate planners: `python eval.py --config protocol_table1 [--policy NAME=RUN_DIR
 ...] [--out DIR] [section.key=value ...]`, the same as `jaxmripp eval`
 (jaxmripp/cli/evaluate.py)."""
 

@@ -1,4 +1,4 @@
-"""Train a policy: `python train.py --config configs/default.yaml [section.key=value ...]`,
+"""Train a policy: `python train.py --config recipe_quick [section.key=value ...]`,
 the same as `jaxmripp train` (jaxmripp/cli/train.py)."""
 
 import sys

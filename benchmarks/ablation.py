@@ -25,11 +25,12 @@ Usage (from the repository root):
     python benchmarks/ablation.py [--preset default|paper] [--seeds 2] [--updates U]
         [--variants full,no_comm,...] [--worlds 25] [--trials 10] [--runs runs/ablation]
         [--out docs/results/ablation_default.md]
-Preset `default` trains configs/default.yaml (the `make train` job) and evaluates with
-configs/eval_ablation.yaml; `paper` trains configs/pretrained_paper.yaml with the default
-view gain (sensor.gain_occlusion=true, sensor.gain_facade=nearby) for --updates (default
-60) and evaluates with configs/eval_paper_world.yaml and that gain. Both train without
-their kickstarting teacher (ppo.teacher_coef=0).
+Preset `default` trains the recipe_quick preset (the `make train` job) and evaluates with
+protocol_table1; `paper` trains recipe_paper with the default view gain
+(sensor.gain_occlusion=true, sensor.gain_facade=nearby) for --updates (default 60) and
+evaluates with protocol_table1_paper_world and that gain. Both train without their
+kickstarting teacher (ppo.teacher_coef=0), and both evaluate the policy alone under the
+paper's rules (PAPER_RULES).
 """
 
 from __future__ import annotations
@@ -68,8 +69,8 @@ NO_TEACHER = ("ppo.teacher_coef=0",)
 # outside the training sections apply to the evaluation too). The paper preset keeps the
 # default view gain its table was made with.
 PRESETS = {
-    "default": ("default", "eval_ablation", None, ()),
-    "paper": ("pretrained_paper", "eval_paper_world", 60,
+    "default": ("recipe_quick", "protocol_table1", None, ()),
+    "paper": ("recipe_paper", "protocol_table1_paper_world", 60,
               ("sensor.gain_occlusion=true", "sensor.gain_facade=nearby")),
 }
 # Every variant is evaluated under the paper's rules at short range (no sectors, no parting

@@ -28,6 +28,7 @@ import jax  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
 
@@ -38,7 +39,7 @@ def main(argv=None) -> int:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--blocks", type=int, default=2)
     parser.add_argument("--rounds", type=int, default=5)
-    add_config_arguments(parser, "default")
+    add_config_arguments(parser, presets.DEFAULT)
     args = parser.parse_args(argv)
     if args.blocks < 1 or args.rounds < 1:
         parser.error(f"--blocks {args.blocks} --rounds {args.rounds}: both must be >= 1")

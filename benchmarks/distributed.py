@@ -28,6 +28,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import print_config  # noqa: E402
 
 SMALL = ["train.envs=32", "train.updates=4", "train.updates_per_chunk=1", "ppo.minibatches=4"]
@@ -39,8 +40,9 @@ def main(argv=None) -> int:
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--processes", type=int, default=2)
     parser.add_argument("--blocks", type=int, help="train.blocks (default: --processes)")
-    parser.add_argument("--config", default="default",
-                        help="a packaged preset's name or a YAML file (default: default)")
+    parser.add_argument("--config", default=presets.DEFAULT,
+                        help=f"a packaged preset's name or a YAML file (default: "
+                             f"{presets.DEFAULT})")
     parser.add_argument("--print-config", action="store_true",
                         help="print the merged config as YAML and exit")
     parser.add_argument("--keep", type=Path, help="keep the run folders here (default: a "

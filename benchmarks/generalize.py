@@ -1,7 +1,7 @@
 """Generalisation: a policy against the classical planners in 12 shifted settings.
 
 Every cell changes the default world's Table I setting (N = 3, team budget B = 10,
-random layout, rho = inf, configs/eval_paper.yaml) along one or several axes, and runs
+random layout, rho = inf, configs/protocol_table1.yaml) along one or several axes, and runs
 every planner on the same W worlds x T trials (default 10 x 5), drawn from the seeds
 5000 + cell, which no training run and no other benchmark uses. Per cell the policy is
 compared with the best classical planner of that cell (never a reference such as the
@@ -36,7 +36,7 @@ from common import ArgumentParser, add_quiet, emit, emit_text, entry_point  # no
 from jaxmripp import config as cfgmod, folders  # noqa: E402
 from jaxmripp.config import presets  # noqa: E402
 
-PRESET = "eval_paper"  # the packaged preset (configs/eval_paper.yaml)
+PRESET = "protocol_table1"  # the packaged preset (configs/protocol_table1.yaml)
 CLASSICAL = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv")
 FOOTPRINTS = ("world.footprint=5", "world.footprint_min=2")
 # name -> overrides of the default Table I cell (N = 3, B = 10, random layout, rho = inf)

@@ -8,8 +8,9 @@ coordinated, greedy, mcts, rig, random, and three upper references that read the
 flight ahead with claims heard only in radio range (oracle_ahead), and nbv_targets with
 each building's true remaining windows (oracle_rate). Every planner runs the same worlds
 and trials, so comparisons are paired by world (`jaxmripp.evaluation.stats`).
-Preset `default` is our world (the eval_paper preset, configs/eval_paper.yaml); `paper` the
-reference's world (eval_paper_world, the same protocol). Figures (JSON lines):
+Preset `default` is our world (the protocol_table1 preset, configs/protocol_table1.yaml);
+`paper` the reference's world (protocol_table1_paper_world, the same protocol). Figures
+(JSON lines):
 
     quality.policy_pct               mean % of windows found at rho = inf
     quality.policy_pct_rho01         ... at rho = 0.1
@@ -63,7 +64,7 @@ from jaxmripp import config as cfgmod, folders  # noqa: E402
 from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 
-PRESETS = {"default": "eval_paper", "paper": "eval_paper_world"}  # packaged presets
+PRESETS = {"default": "protocol_table1", "paper": "protocol_table1_paper_world"}  # packaged presets
 BASELINES = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv", "coordinated", "greedy", "mcts",
              "rig", "random")
 REFERENCES = cfgmod.REFERENCES

@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point  # noqa: E402
 from jaxmripp import config as cfgmod, folders  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import add_config_arguments, fail, print_config  # noqa: E402
 
 RANGES = (0.3, 0.1)
@@ -50,7 +51,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.policy:  # a folder of another kind or a corrupt export fails here, in one line
         folders.policy(args.policy)
-    base = args.policy / "config.yaml" if args.policy else "default"
+    base = args.policy / "config.yaml" if args.policy else presets.DEFAULT
     planners = (["policy"] if args.policy else []) + list(BASELINES)
     overrides = [f"eval.planners=[{','.join(planners)}]", "eval.team_sizes=[3]",
                  "eval.world_sizes=[50]", f"eval.radio_ranges=[{','.join(map(str, RANGES))}]",

@@ -8,7 +8,7 @@ rates are medians over rounds and the ratio is the median of the per-round ratio
 
 The ratio depends on the network as much as on the environment: the rollout costs the
 policy's time plus the environment's, so a cheaper policy lowers it. `--config
-configs/train_paper.yaml` measures it with the paper's network (width 128, feed-forward
+benchmarks/train_paper.yaml` measures it with the paper's network (width 128, feed-forward
 512), the network the performance model of docs/design.md budgets for (see
 docs/performance.md, "Rollout against the policy alone"); the default config's width-64
 network is much cheaper. With the update timed it also prints
@@ -37,6 +37,7 @@ import jax.numpy as jnp  # noqa: E402
 
 from common import ArgumentParser, emit, entry_point, median_seconds  # noqa: E402
 from jaxmripp import config as cfgmod  # noqa: E402
+from jaxmripp.config import presets  # noqa: E402
 from jaxmripp.config.cli import add_config_arguments, print_config  # noqa: E402
 from jaxmripp.learn import ppo  # noqa: E402
 from jaxmripp.learn import train as trainmod  # noqa: E402
@@ -53,7 +54,7 @@ def main(argv=None) -> int | None:
                         help="skip the PPO update timing (the slowest part at 1024 envs)")
     parser.add_argument("--loop", type=int, default=0, metavar="CHUNKS",
                         help="time CHUNKS chunks of the training loop instead (after one more)")
-    add_config_arguments(parser, "default", "dotted overrides after --envs and --steps")
+    add_config_arguments(parser, presets.DEFAULT, "dotted overrides after --envs and --steps")
     args = parser.parse_args(argv)
     cfg = cfgmod.load(args.config, [f"train.envs={args.envs}",
                                     f"train.rollout_steps={args.steps}", *args.overrides])

@@ -61,11 +61,30 @@ def _what(folder: Path) -> str:
         return "a training run, not an export (export it: python -m jaxmripp.export RUN_DIR)"
     if is_export(folder):
         return "an export, not a training run"
-    names = sorted(p.name for p in folder.iterdir())
-    if not names:
+    if not any(folder.iterdir()):
         return "an empty folder"
-    shown = ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
-    return f"neither a training run nor an export (it holds {shown})"
+    return f"neither a training run nor an export (it holds {_contents(folder)})"
+
+
+def _contents(folder: Path) -> str:
+    """The first few names in `folder`, for a message."""
+    names = sorted(p.name for p in folder.iterdir())
+    return ", ".join(names[:4]) + (", ..." if len(names) > 4 else "")
+
+
+def new_run(folder: str | Path) -> Path:
+    """`folder` for a new training run (train.py --run-dir): one that does not exist yet or
+    an empty folder; FolderError otherwise, so that no run is written over another."""
+    folder = Path(folder)
+    if not folder.exists() or (folder.is_dir() and not any(folder.iterdir())):
+        return folder
+    if not folder.is_dir():
+        what = "a file, not a folder"
+    elif is_training_run(folder):
+        what = f"holds a training run (continue it with --resume {folder})"
+    else:
+        what = f"not empty (it holds {_contents(folder)})"
+    raise FolderError(f"--run-dir {folder}: {what}; allowed: a new or empty folder")
 
 
 def training_run(folder: str | Path, best: bool = False) -> cfgmod.Config:

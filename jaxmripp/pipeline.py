@@ -56,7 +56,7 @@ def eval_dir(config_path: str | Path, policy_dirs: Sequence[Path]) -> Path:
 
 def initial_source(cfg: Config) -> Path:
     """The folder `train.init_from` names: relative to the working directory, else to the
-    source checkout (`pretrained/default_ppo` of a curriculum preset, from anywhere)."""
+    source checkout (`train.init_from=pretrained/default` works from anywhere)."""
     return presets.in_checkout(cfg.train.init_from)
 
 

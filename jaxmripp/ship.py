@@ -8,9 +8,9 @@ OUT_DIR gets the export the runtime and `eval.py --policy NAME=OUT_DIR` load
 metadata.json, every figure of which is read from a file a command wrote:
 
     commit               HEAD, or --commit (the commit the run trained with)
-    command, init_from   the training command: the packaged preset (configs/ in the
-                         repository) that loads to the run's config, else the shipped
-                         config.yaml; where it started from
+    command, init_from   the training command: the packaged preset that loads to the
+                         run's config (but for train.name, the run folder's name), else
+                         the shipped config.yaml; where it started from
     train_minutes        the sum of the chunks' times in metrics.jsonl
     updates, agent_steps, training_discovered   metrics.jsonl's last record
     evaluations          per result FILE (the JSON lines benchmarks/quality.py or
@@ -28,6 +28,7 @@ Nothing is written until every input has been read and checked.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import shutil
 import subprocess
@@ -113,17 +114,27 @@ def written_beside(path: Path) -> tuple[str | None, dict | None]:
     return command, rules
 
 
+# Settings a training command may give beside its preset: they choose the run's folder,
+# its random seed and where it starts from, not the recipe.
+COMMAND_OVERRIDES = ("name", "seed", "init_from")
+
+
 def training_command(cfg: cfgmod.Config, shipped_config: Path) -> str:
-    """`python train.py --config X`: X the first packaged preset that loads to exactly
-    `cfg` (as configs/NAME.yaml, the path from the repository root), else the shipped
-    config.yaml (which does)."""
+    """`jaxmripp train --config X [train.seed=S] [train.init_from=DIR]`: X the name of the
+    first packaged preset that loads to `cfg` but for `COMMAND_OVERRIDES` (train.name only
+    names the run's folder, so it is left out), else the shipped config.yaml (which loads
+    to `cfg` exactly)."""
     for name in presets.names():
         try:
-            if cfgmod.load(presets.PRESETS / f"{name}.yaml") == cfg:
-                return f"python train.py --config configs/{name}.yaml"
+            preset = cfgmod.load(name)
         except cfgmod.ConfigError:
             continue
-    return f"python train.py --config {shipped_config}"
+        kept = {key: getattr(cfg.train, key) for key in COMMAND_OVERRIDES}
+        if dataclasses.replace(preset, train=dataclasses.replace(preset.train, **kept)) == cfg:
+            overrides = [f"train.{key}={kept[key]}" for key in COMMAND_OVERRIDES[1:]
+                         if kept[key] != getattr(preset.train, key)]
+            return " ".join(["jaxmripp train --config", name, *overrides])
+    return f"jaxmripp train --config {shipped_config}"
 
 
 def metadata(cfg: cfgmod.Config, trained: Path, config_path: Path, checkpoint: str,

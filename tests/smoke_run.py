@@ -11,7 +11,7 @@ TIMING = ("seconds", "agent_steps_per_s")  # the only record fields that differ 
 
 @pytest.fixture(scope="module")
 def cfg():
-    return cfgmod.load("configs/smoke.yaml")
+    return cfgmod.load("tests/smoke.yaml")
 
 
 @pytest.fixture(scope="module")

@@ -35,7 +35,7 @@ def _act(planner, obs, state, dyn=None):
     return act(jax.random.PRNGKey(0), obs, dyn)
 
 
-SMOKE = config.load(ROOT / "configs" / "smoke.yaml")
+SMOKE = config.load(ROOT / "tests" / "smoke.yaml")
 
 
 def _params():
@@ -126,7 +126,7 @@ WORLDS = 192  # compiling dominates; many worlds make the paired comparison tigh
 
 @pytest.fixture(scope="module")
 def ranking():
-    cfg = config.load(ROOT / "configs" / "smoke.yaml", SMALL)
+    cfg = config.load(ROOT / "tests" / "smoke.yaml", SMALL)
     shape = cells.Shape(n_robots=2, size=30, radio_range=float("inf"), budget=6.0)
     params = evaluate.eval_params(cfg, shape.budget, robots=2, size=30)
     dyn = evaluate.eval_dynamic(cfg, shape.budget, radio_range=shape.radio_range)

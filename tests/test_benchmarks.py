@@ -27,7 +27,7 @@ SCRIPTS = {  # script: (arguments, figures it must print)
     "gp.py": ([], ["gp.step_per_s", "gp.speedup_vs_refactor", "gp.block_speedup_vs_adds"]),
     "runtime.py": ([], ["runtime.decision_ms", "runtime.map_message_bytes",
                         "runtime.policy_forward_ms"]),
-    "train.py": (["--config", "smoke", "--envs", "8", "--steps", "2",
+    "train.py": (["--config", "tests/smoke.yaml", "--envs", "8", "--steps", "2",
                   "--rounds", "1"],
                  ["train.rollout_agent_steps_per_s", "train.update_samples_per_s",
                   "train.env_share_of_iteration"]),

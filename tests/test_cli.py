@@ -75,14 +75,17 @@ def test_a_missing_or_unknown_command_is_one_error_line(capsys):
 
 def test_print_config_from_outside_the_repository_is_the_packaged_preset(
         capsys, tmp_path, monkeypatch):
-    """From a folder with no configs/: `--config smoke` is jaxmripp/configs/smoke.yaml. The
-    printed YAML holds every value the preset file sets (read with yaml alone) and the
-    defaults elsewhere, and loads back to the same config."""
+    """From a folder with no configs/: `--config recipe_quick` is
+    jaxmripp/configs/recipe_quick.yaml, also train's default. The printed YAML holds every
+    value the preset file sets (read with yaml alone) and the defaults elsewhere, and loads
+    back to the same config."""
     monkeypatch.chdir(tmp_path)
-    status, out, _ = run(capsys, ["train", "--config", "smoke", "--print-config"])
+    status, out, _ = run(capsys, ["train", "--config", "recipe_quick", "--print-config"])
     assert status == 0
+    assert run(capsys, ["train", "--print-config"])[1] == out  # --config's default
     printed = yaml.safe_load(out)
-    raw = yaml.safe_load((REPO / "jaxmripp" / "configs" / "smoke.yaml").read_text())
+    raw = yaml.safe_load((REPO / "jaxmripp" / "configs" / "recipe_quick.yaml").read_text())
+    assert "base" not in raw  # every value below is the file's own
     for section, values in raw.items():
         for key, value in values.items():
             assert printed[section][key] == value, (section, key)
@@ -91,19 +94,19 @@ def test_print_config_from_outside_the_repository_is_the_packaged_preset(
         for key, value in values.items():
             if key not in raw.get(section, {}):
                 assert printed[section][key] == value, (section, key)
-    assert cfgmod.from_dict(printed) == cfgmod.load(REPO / "configs" / "smoke.yaml")
+    assert cfgmod.from_dict(printed) == cfgmod.load(REPO / "configs" / "recipe_quick.yaml")
     assert list(tmp_path.iterdir()) == []  # nothing written
 
 
 def test_print_config_applies_overrides_on_eval_too(capsys, tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    status, out, _ = run(capsys, ["eval", "--config", "eval_paper", "--print-config",
+    status, out, _ = run(capsys, ["eval", "--config", "protocol_table1", "--print-config",
                                   "eval.worlds=2", "robots.count=4"])
     assert status == 0
     printed = yaml.safe_load(out)
     assert (printed["eval"]["worlds"], printed["robots"]["count"]) == (2, 4)
     assert printed["eval"]["trials"] == yaml.safe_load(
-        (REPO / "configs" / "eval_paper.yaml").read_text())["eval"]["trials"]
+        (REPO / "configs" / "protocol_table1.yaml").read_text())["eval"]["trials"]
 
 
 def test_an_unknown_preset_name_lists_the_presets(capsys):
@@ -172,24 +175,24 @@ def test_bench_runs_a_script_with_its_arguments(capsys, tmp_path, monkeypatch):
 
 
 def test_init_from_in_the_checkout_resolves_from_anywhere(tmp_path, monkeypatch):
-    """curriculum_n8 starts from pretrained/default_ppo, a path in the repository: from
-    another folder it is the checkout's, while a folder of that name in the working
-    directory comes first."""
+    """train.init_from=pretrained/default_fast, a path in the repository: from another
+    folder it is the checkout's, while a folder of that name in the working directory comes
+    first."""
     monkeypatch.chdir(tmp_path)
     from jaxmripp import pipeline  # noqa: PLC0415
 
-    cfg = cfgmod.load("curriculum_n8")
-    assert pipeline.initial_source(cfg) == REPO / "pretrained" / "default_ppo"
+    cfg = cfgmod.load("recipe_quick", ["train.init_from=pretrained/default_fast"])
+    assert pipeline.initial_source(cfg) == REPO / "pretrained" / "default_fast"
     pipeline.check_initial_params(cfg)
-    (tmp_path / "pretrained" / "default_ppo").mkdir(parents=True)
-    assert pipeline.initial_source(cfg) == Path("pretrained/default_ppo")
+    (tmp_path / "pretrained" / "default_fast").mkdir(parents=True)
+    assert pipeline.initial_source(cfg) == Path("pretrained/default_fast")
 
 
 @pytest.mark.slow
 def test_train_as_a_process_from_outside_the_repository(tmp_path):
-    """`python -m jaxmripp train --config smoke` in an empty folder: the run folder is made
-    there, with the config the preset and overrides load to, and its TensorBoard events hold
-    every scalar of metrics.jsonl for the two updates asked for."""
+    """`python -m jaxmripp train --config SMOKE` (tests/smoke.yaml) in an empty folder: the
+    run folder is made there, with the config the file and overrides load to, and its
+    TensorBoard events hold every scalar of metrics.jsonl for the two updates asked for."""
     import numpy as np  # noqa: PLC0415
 
     from event_files import scalars  # noqa: PLC0415  (tests/event_files.py)
@@ -198,16 +201,30 @@ def test_train_as_a_process_from_outside_the_repository(tmp_path):
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(
         [str(REPO), os.environ.get("PYTHONPATH", "")]).rstrip(os.pathsep)}
     overrides = ["train.updates=2", "train.updates_per_chunk=1", "train.name=outside"]
-    done = subprocess.run([sys.executable, "-m", "jaxmripp", "train", "--config", "smoke",
+    done = subprocess.run([sys.executable, "-m", "jaxmripp", "train", "--config",
+                           str(REPO / "tests" / "smoke.yaml"),
                            "--no-eval", "--quiet", *overrides],
                           cwd=tmp_path, env=env, capture_output=True, text=True, timeout=900)
     assert done.returncode == 0, done.stderr[-3000:]
     run_dir = tmp_path / "runs" / "outside"
     assert cfgmod.load(run_dir / "config.yaml") == cfgmod.load(
-        REPO / "configs" / "smoke.yaml", overrides)
+        REPO / "tests" / "smoke.yaml", overrides)
     records = [json.loads(line) for line in
                (run_dir / "metrics.jsonl").read_text().splitlines() if line.strip()]
     assert [r["update"] for r in records] == [1, 2]
     expected = {(key, r["update"]): [np.float32(value)] for r in records
                 for key, value in r.items() if key != "update"}
     assert scalars(run_dir / metricsmod.TENSORBOARD_DIR) == expected
+
+
+def test_eval_help_names_the_folders_results_go_to_by_default(capsys):
+    from jaxmripp import pipeline
+
+    _, out, _ = run(capsys, ["eval", "--help"])
+    text = " ".join(out.split())
+    # a shipped export stays as shipped: its evaluation goes under runs/
+    assert "runs/<folder name>/eval for a shipped export" in text
+    assert pipeline.eval_dir("protocol_table1", [REPO / "pretrained" / "default"]) == Path(
+        "runs/default/eval")
+    assert "runs/<config name>/eval" in text
+    assert pipeline.eval_dir("protocol_table1", []) == Path("runs/protocol_table1/eval")

@@ -6,26 +6,31 @@ import pytest
 import yaml
 
 from jaxmripp import config as cfgmod
-from jaxmripp.config import Config, ConfigError
+from jaxmripp.config import Config, ConfigError, presets
 
-CONFIGS = Path(__file__).resolve().parents[1] / "configs"
+REPO = Path(__file__).resolve().parents[1]
+CONFIGS = REPO / "configs"
 PRESETS = sorted(path.stem for path in CONFIGS.glob("*.yaml"))
+# Config files outside the presets: the tests' tiny one, the paper's training settings.
+FILES = [CONFIGS / f"{name}.yaml" for name in PRESETS] + [
+    REPO / "tests" / "smoke.yaml", REPO / "benchmarks" / "train_paper.yaml"]
 
 
 def test_every_preset_is_checked():
-    assert {"default", "paper", "smoke", "eval_paper", "train_paper"} <= set(PRESETS)
+    assert {"recipe_quick", "world_paper", "protocol_table1"} <= set(PRESETS)
+    assert PRESETS == presets.names()
 
 
-@pytest.mark.parametrize("name", PRESETS)
-def test_presets_load_and_round_trip(name):
+@pytest.mark.parametrize("path", FILES, ids=lambda path: path.stem)
+def test_presets_load_and_round_trip(path):
     # Every preset must load and validate: an unknown key or a bad value fails here.
-    cfg = cfgmod.load(CONFIGS / f"{name}.yaml")
+    cfg = cfgmod.load(path)
     again = cfgmod.from_dict(yaml.safe_load(cfgmod.to_yaml(cfg)))
     assert again == cfg
     hash(cfg)  # usable as a static jit argument
 
 
-SHIPPED = sorted((CONFIGS.parent / "pretrained").glob("*/metadata.json"))
+SHIPPED = sorted((REPO / "pretrained").glob("*/metadata.json"))
 
 
 def _training_settings(cfg: Config) -> dict:
@@ -42,13 +47,13 @@ def _training_settings(cfg: Config) -> dict:
 @pytest.mark.parametrize("metadata", SHIPPED, ids=lambda path: path.parent.name)
 def test_shipped_policies_are_what_their_commands_train(metadata):
     # A preset that a shipped policy's command names must still train that policy: a
-    # change to a base preset (default.yaml) must not change what an older command means.
+    # change to a base preset (recipe_quick.yaml) must not change what an older command means.
     command = yaml.safe_load(metadata.read_text())["command"].split("&&")[-1].split()
     assert command[:3] == ["python", "train.py", "--config"], command
-    path, overrides = command[3], command[4:]
+    source, overrides = command[3], command[4:]  # a preset's name or a path
     trained = cfgmod.load(metadata.parent / "config.yaml")
-    assert _training_settings(cfgmod.load(CONFIGS.parent / path, overrides)) == \
-        _training_settings(trained)
+    loaded = cfgmod.load(source if presets.is_name(source) else REPO / source, overrides)
+    assert _training_settings(loaded) == _training_settings(trained)
 
 
 def test_infinite_radio_range_round_trips():
@@ -68,13 +73,13 @@ def test_exponents_without_a_dot_are_numbers():
 
 
 def test_overrides_apply_on_top_of_a_preset():
-    cfg = cfgmod.load("configs/default.yaml", ["world.size=64", "robots.count=4"])
+    cfg = cfgmod.load("configs/recipe_quick.yaml", ["world.size=64", "robots.count=4"])
     assert cfg.world.size == 64 and cfg.robots.count == 4
     assert cfg.robots.budget == (7.0, 9.0)  # from the preset, untouched
 
 
 def test_paper_preset_inherits_and_changes_the_reference_bits():
-    paper = cfgmod.load("configs/paper.yaml")
+    paper = cfgmod.load("configs/world_paper.yaml")
     assert paper.world.target_placement == "footprint"
     assert paper.sensor.model == "frustum"
     assert paper.robots.budget == (7.0, 9.0)
@@ -107,7 +112,8 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
 )
 def test_bad_values_give_one_clear_line(override, needle):
     with pytest.raises(ConfigError) as err:
-        cfgmod.load("configs/default.yaml", override if isinstance(override, list) else [override])
+        cfgmod.load("configs/recipe_quick.yaml",
+                    override if isinstance(override, list) else [override])
     message = str(err.value)
     assert needle in message
     assert "\n" not in message
@@ -133,7 +139,7 @@ def test_near_miss_key_suggests_the_right_name():
 
 def test_preset_with_an_unknown_key_is_refused_in_one_line(tmp_path):
     preset = tmp_path / "typo.yaml"
-    preset.write_text(f"base: {CONFIGS / 'default.yaml'}\neval:\n  wordls: 3\n")
+    preset.write_text(f"base: {CONFIGS / 'recipe_quick.yaml'}\neval:\n  wordls: 3\n")
     with pytest.raises(ConfigError) as err:
         cfgmod.load(preset)
     message = str(err.value)

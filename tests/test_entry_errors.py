@@ -27,7 +27,7 @@ from jaxmripp.learn.checkpoint import Checkpoints
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = REPO / "pretrained" / "default_fast"
-SMOKE = REPO / "configs" / "smoke.yaml"
+SMOKE = REPO / "tests" / "smoke.yaml"
 for path in (REPO, REPO / "benchmarks"):
     if str(path) not in sys.path:
         sys.path.insert(0, str(path))
@@ -165,6 +165,27 @@ def test_train_init_from_refuses_before_choosing_a_run_folder(bad, capsys, kind)
          f"train.init_from={bad[kind]}"]))
     assert line.startswith("error: train.init_from: ") and WORDS[kind] in line
     assert "run folder" not in out
+
+
+@pytest.mark.parametrize("kind", ["config_only", "shipped", "corrupt_checkpoint"])
+def test_train_run_dir_refuses_a_folder_that_holds_anything(bad, capsys, kind):
+    """--run-dir names the folder a new run is created in: never one with files."""
+    folder = bad[kind]
+    line, out = unchanged(bad, capsys, lambda: train_cli.main(
+        ["--config", str(SMOKE), "--run-dir", str(folder), "--no-eval"]))
+    what = {"config_only": "not empty (it holds config.yaml)",
+            "shipped": "not empty (it holds config.yaml, learning_curve.png, metadata.json, "
+                       "metrics.jsonl, ...)",
+            "corrupt_checkpoint": f"holds a training run (continue it with --resume {folder})"}
+    assert line == f"error: --run-dir {folder}: {what[kind]}; allowed: a new or empty folder"
+    assert "run folder" not in out
+
+
+@pytest.mark.parametrize("other", ["--resume", "--runs"])
+def test_train_run_dir_goes_with_neither_resume_nor_runs(bad, capsys, other):
+    line, _ = unchanged(bad, capsys, lambda: train_cli.main(
+        ["--run-dir", str(bad["missing"]), other, str(bad["corrupt_checkpoint"]), "--no-eval"]))
+    assert line.startswith(f"error: argument --run-dir: not allowed with argument {other}")
 
 
 @pytest.mark.parametrize("kind", NOT_AN_EXPORT)

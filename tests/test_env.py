@@ -32,7 +32,7 @@ from jaxmripp.sim.observation import Observation
 from jaxmripp.spec import FEATURES
 
 REPO = Path(__file__).resolve().parents[1]
-CFG = config.load(REPO / "configs/smoke.yaml",
+CFG = config.load(REPO / "tests/smoke.yaml",
                   ["world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]"])
 P0 = EnvParams.from_config(CFG)  # single hop
 D0 = DynamicParams.from_config(CFG)  # rho = 0.3, d_c = 0.05
@@ -319,7 +319,7 @@ def test_every_robot_starts_mapped_free_with_somewhere_to_fly():
     traversal and the runtime give it is 26) while 0.225 * (3 * 40) rounds to 27. The
     take-off scan must map the voxel the robot is in, or no flight out of it is known
     free and the robot never moves."""
-    cfg = config.load(REPO / "configs/smoke.yaml", [
+    cfg = config.load(REPO / "tests/smoke.yaml", [
         "world.size=40", "robots.count=10", "robots.pad_spacing=0.225",
         "robots.budget=[30.0, 30.0]"])
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
@@ -622,7 +622,7 @@ def shared_r_e(before, after, order, cfg):
 
 
 def test_shared_utility_rewards_follow_robot_order():
-    cfg = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3",
+    cfg = config.load(REPO / "tests/smoke.yaml", ["world.size=30", "robots.count=3",
                                                     "robots.budget=[4.0, 4.0]",
                                                     "gp.shared_utility=true"])
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
@@ -682,17 +682,16 @@ def test_greedy_follows_its_score_not_chance():
 
 @pytest.mark.slow
 def test_random_finds_more_than_greedy_on_table_one_in_the_paper_world():
-    """Table I's setting in the paper's world (configs/eval_paper_world.yaml: windows inside
-    footprints, a frustum without occlusion, N = 3, B = 10, G = 50, shared maps) at
-    rho = inf, on WORLDS of its worlds: random finds more than greedy (measured: 46.04%
-    against 33.70%), as on the protocol's 250 episodes (docs/results/paper: 41.07% against
-    31.22%). The utility GP
-    regresses how many windows a pose sees, not how many it would see first, so greedy's
-    score points back at windows already found (docs/baselines.md), while random spreads
-    the team."""
+    """Table I's setting in the paper's world (configs/protocol_table1_paper_world.yaml:
+    windows inside footprints, a frustum without occlusion, N = 3, B = 10, G = 50, shared
+    maps) at rho = inf, on WORLDS of its worlds: random finds more than greedy (measured:
+    46.04% against 33.70%), as on the protocol's 250 episodes (docs/results/paper: 41.07%
+    against 31.22%). The utility GP regresses how many windows a pose sees, not how many it
+    would see first, so greedy's score points back at windows already found
+    (docs/baselines.md), while random spreads the team."""
     from jaxmripp.evaluation import sweep
 
-    cfg = config.load(REPO / "configs/eval_paper_world.yaml", [
+    cfg = config.load(REPO / "configs/protocol_table1_paper_world.yaml", [
         "eval.planners=[greedy, random]", "eval.radio_ranges=[.inf]", f"eval.worlds={WORLDS}",
         "eval.trials=1", "eval.pairs=[]", "eval.render=false"])
     result = sweep.run_sweep(cfg, {}, log=lambda _: None, time_planning=False,

@@ -97,19 +97,19 @@ def test_pairs_and_planner_names():
     assert sweep.planner_names(cfg, {"full": None, "g0": None}) == ["greedy", "full", "g0", "random"]
 
 
-@pytest.mark.parametrize("name", ["eval_paper", "eval_paper_world", "eval_scale", "eval_ablation"])
+@pytest.mark.parametrize("name", ["protocol_table1", "protocol_table1_paper_world",
+                                  "protocol_scale"])
 def test_presets_load(name):
     cfg = config.load(ROOT / "configs" / f"{name}.yaml")
     shapes = sweep.shapes_of(cfg)
-    if name == "eval_scale":
+    if name == "protocol_scale":
         assert {(s.size, s.radio_range) for s in shapes} == {(75, 0.2), (100, 0.15), (125, 0.12)}
         assert len(shapes) == 12
     else:
         assert {s.radio_range for s in shapes} == {math.inf, 0.1}
         assert cfg.eval.worlds * cfg.eval.trials == 250
-        # Table I is reported with both short-range rules; the ablations with the paper's.
-        rules = name != "eval_ablation"
-        assert (cfg.eval.sectors, cfg.safety.escape) == (rules, rules)
+        # Table I is reported with both short-range rules (the ablations add the paper's).
+        assert (cfg.eval.sectors, cfg.safety.escape) == (True, True)
 
 
 def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
@@ -117,10 +117,11 @@ def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
 
     run = tmp_path / "runs" / "mine"
     (run / "checkpoints" / "last" / "10").mkdir(parents=True)  # a saved step: a run
-    assert eval_dir("configs/eval_paper.yaml", [run, ROOT / "pretrained/paper"]) == run / "eval"
-    assert eval_dir("configs/eval_paper.yaml", [ROOT / "pretrained/scale"]) == \
+    assert eval_dir("configs/protocol_table1.yaml",
+                    [run, ROOT / "pretrained/paper"]) == run / "eval"
+    assert eval_dir("configs/protocol_table1.yaml", [ROOT / "pretrained/scale"]) == \
         Path("runs/scale/eval")
-    assert eval_dir("configs/eval_paper.yaml", []) == Path("runs/eval_paper/eval")
+    assert eval_dir("configs/protocol_table1.yaml", []) == Path("runs/protocol_table1/eval")
 
 
 # ---------------------------------------------------------------------------------------
@@ -129,7 +130,7 @@ def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
 
 @pytest.fixture(scope="module")
 def tiny_sweep(tmp_path_factory):
-    cfg = config.load(ROOT / "configs" / "smoke.yaml", TINY)
+    cfg = config.load(ROOT / "tests" / "smoke.yaml", TINY)
     cells.TRACES.clear()
     lines = []
     result = sweep.run_sweep(cfg, log=lines.append, batch=4, time_planning=True,
@@ -194,7 +195,7 @@ def test_cli_on_two_devices_reproduces_the_sweep(tiny_sweep, tmp_path):
     chunk included), reproduces the 1-device numbers and table rows exactly."""
     _, result, _, _, _ = tiny_sweep
     done = subprocess.run(
-        [sys.executable, str(ROOT / "eval.py"), "--config", str(ROOT / "configs" / "smoke.yaml"),
+        [sys.executable, str(ROOT / "eval.py"), "--config", str(ROOT / "tests" / "smoke.yaml"),
          "--out", str(tmp_path), "--no-render", "--no-timing", *TINY, "eval.team_sizes=[2]",
          "eval.batch=4"],
         cwd=ROOT, env=host_devices_env(2), capture_output=True, text=True, timeout=300)
@@ -214,7 +215,7 @@ def test_cli_rejects_bad_arguments(tmp_path, capsys):
     cli = _cli()
     assert cli.main(["--config", str(tmp_path / "missing.yaml")]) == 2
     assert "no such config file" in capsys.readouterr().err
-    assert cli.main(["--config", str(ROOT / "configs" / "smoke.yaml"),
+    assert cli.main(["--config", str(ROOT / "tests" / "smoke.yaml"),
                      "--policy", f"p={tmp_path}"]) == 2
     assert "an empty folder; allowed: a training run" in capsys.readouterr().err
 

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from jaxmripp import config as cfgmod, export
+from jaxmripp.config import presets
 from jaxmripp.learn import policy as policymod
 from jaxmripp.learn.checkpoint import Checkpoints
 from jaxmripp.learn.train import Trainer
@@ -69,7 +70,7 @@ def test_weights_of_another_input_width_are_refused(flat_params):
         "global_embed/kernel": np.zeros((width, CFG.policy.width), np.float32)}))
 
 
-AHEAD = cfgmod.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3",
+AHEAD = cfgmod.load(REPO / "tests/smoke.yaml", ["world.size=30", "robots.count=3",
                                                    "policy.ahead_branches=4",
                                                    "policy.ahead_discount=1.5"])
 
@@ -149,7 +150,7 @@ def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_pa
 def run_dir(tmp_path_factory):
     """A training run directory as `jaxmripp.learn.train.train` leaves it, without the
     training: config.yaml and one checkpoint of the initial state."""
-    cfg = cfgmod.load(REPO / "configs/smoke.yaml")
+    cfg = cfgmod.load(REPO / "tests/smoke.yaml")
     run = tmp_path_factory.mktemp("runs") / "tiny"
     run.mkdir()
     (run / "config.yaml").write_text(cfgmod.to_yaml(cfg))
@@ -185,7 +186,7 @@ def test_cli_exports_a_run_directory(run_dir, tmp_path, capsys):
 
 
 def test_cli_run_directory_without_checkpoint_fails_in_one_line(tmp_path, capsys):
-    cfg = cfgmod.load(REPO / "configs/smoke.yaml")
+    cfg = cfgmod.load(REPO / "tests/smoke.yaml")
     (tmp_path / "config.yaml").write_text(cfgmod.to_yaml(cfg))
     assert export.main([str(tmp_path)]) == 2
     err = capsys.readouterr().err.strip()
@@ -203,7 +204,7 @@ def test_cli_missing_run_directory_fails_in_one_line(tmp_path):
     assert result.stdout == "" and not missing.exists()
 
 
-def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
+def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path, monkeypatch):
     """A shipped folder (jaxmripp.ship) holds the export, config and metadata, and the
     planner eval.py restores from it acts as the runtime does with the same weights."""
     from jaxmripp import pipeline, ship
@@ -215,11 +216,20 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
         {"update": 10, "env_steps": 960, "seconds": 90.0, "discovered": 0.25, "return": 1.0,
          "entropy": 2.0}) + "\n")
     quality = tmp_path / "quality.jsonl"
-    rules = {"config": "configs/eval_paper.yaml", "worlds": 2}
+    rules = {"config": "configs/protocol_table1.yaml", "worlds": 2}
     quality.write_text('{"name": "quality.command", "value": "python benchmarks/quality.py"}\n'
                        + json.dumps({"name": "quality.rules", "value": rules}) + "\n"
                        '{"name": "quality.policy_pct", "value": 41.5, "unit": "%"}\n'
                        '{"name": "quality.train_minutes", "value": 99.0, "unit": "min"}\n')
+    # A preset folder whose `tiny` loads to the run's config but for its name (a run's
+    # folder), and another preset that differs from it in one setting.
+    packaged = tmp_path / "presets"
+    packaged.mkdir()
+    (packaged / "tiny.yaml").write_text(f"base: {REPO / 'tests/smoke.yaml'}\n"
+                                        "train:\n  name: another_name\n")
+    (packaged / "a_wider_one.yaml").write_text(f"base: {REPO / 'tests/smoke.yaml'}\n"
+                                               "policy:\n  width: 32\n")
+    monkeypatch.setattr(presets, "PRESETS", packaged)
     out = tmp_path / "shipped"
     assert ship.main([str(run), str(out), "--results", str(quality)]) == 0
     meta = json.loads((out / "metadata.json").read_text())
@@ -229,8 +239,17 @@ def test_ship_makes_a_folder_eval_loads_like_the_run(run_dir, tmp_path):
     assert meta["evaluations"] == [{"results": str(quality), "command":
                                     "python benchmarks/quality.py", "rules": rules,
                                     "figures": {"quality.policy_pct": 41.5}}]
-    # configs/smoke.yaml loads to exactly the run's config, so it is the command's preset.
-    assert meta["command"] == "python train.py --config configs/smoke.yaml"
+    # The preset the run's config is, by name; without one, the shipped config.yaml.
+    assert meta["command"] == "jaxmripp train --config tiny"
+    # another seed or start is the same recipe, named as overrides
+    reseeded = dataclasses.replace(cfg, train=dataclasses.replace(
+        cfg.train, seed=cfg.train.seed + 3, init_from="runs/stage_1"))
+    assert ship.training_command(reseeded, out / "config.yaml") == (
+        f"jaxmripp train --config tiny train.seed={cfg.train.seed + 3} "
+        "train.init_from=runs/stage_1")
+    unmatched = dataclasses.replace(cfg, policy=dataclasses.replace(cfg.policy, width=24))
+    assert ship.training_command(unmatched, out / "config.yaml") == (
+        f"jaxmripp train --config {out / 'config.yaml'}")
     assert "init_from" not in meta
     assert {"policy.npz", "policy.json", "config.yaml", "learning_curve.png"} <= {
         p.name for p in out.iterdir()}
@@ -301,6 +320,6 @@ def test_each_shipped_policy_loads_and_flies_by_its_config(name):
     from_config = export.runtime_spec(cfg)
     assert shipped.spec == from_config
     meta = json.loads((folder / "metadata.json").read_text())
-    assert meta["command"].startswith("python train.py --config ")
+    assert meta["command"].startswith("jaxmripp train --config ")
     assert meta["train_minutes"] > 0 and meta["updates"] > 0
     assert len(meta["commit"]) == 40

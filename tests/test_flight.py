@@ -183,7 +183,7 @@ def test_truncate_in_episodes():
     from jaxmripp.sim import episode
     from jaxmripp.sim.params import DynamicParams, EnvParams
 
-    cfg = config.load("configs/smoke.yaml", ["safety.flight=truncate", "robots.count=3"])
+    cfg = config.load("tests/smoke.yaml", ["safety.flight=truncate", "robots.count=3"])
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     planner = baselines.random_planner()
     run = jax.jit(jax.vmap(lambda k: episode.run(k, params, dyn, planner)))

@@ -28,7 +28,7 @@ from jaxmripp.spec import view as spec
 ROOT = Path(__file__).resolve().parents[1]
 # truncate: the reset maps know little free space, and under known_free few second
 # flights would be feasible.
-CFG = config.load(ROOT / "configs" / "smoke.yaml", ["safety.flight=truncate"])
+CFG = config.load(ROOT / "tests" / "smoke.yaml", ["safety.flight=truncate"])
 PARAMS = evaluate.eval_params(CFG, 4.0)
 DYN = evaluate.eval_dynamic(CFG, 4.0, radio_range=math.inf)
 FACADE, BRANCHES, ENVS = 2.0, 5, 3
@@ -167,13 +167,13 @@ def test_branches_beyond_the_candidates_are_refused():
     with pytest.raises(ValueError, match="flights = 1; allowed: 2 or more"):
         baselines.nbv_ahead_planner(PARAMS, FACADE, 1.0, 4, 1)
     with pytest.raises(config.ConfigError, match="eval.nbv_ahead_branches"):
-        config.load(ROOT / "configs" / "smoke.yaml", ["eval.nbv_ahead_branches=25",
+        config.load(ROOT / "tests" / "smoke.yaml", ["eval.nbv_ahead_branches=25",
                                                       "eval.planners=[nbv_ahead]"])
 
 
 # The lookahead input (policy.ahead_branches): the env's column against the NumPy runtime's,
 # fed the uniforms the documented key derivation gives, on states a few random flights in.
-AHEAD_CFG = config.load(ROOT / "configs" / "smoke.yaml", [
+AHEAD_CFG = config.load(ROOT / "tests" / "smoke.yaml", [
     "policy.ahead_branches=5", "policy.ahead_discount=1.5", "policy.ahead_facade_weight=3",
     "radio.range=0.5"])
 AHEAD_PARAMS = envmod.EnvParams.from_config(AHEAD_CFG)
@@ -263,4 +263,4 @@ def _near_tie(features, mask, cost, spec) -> bool:
 def test_ahead_input_is_off_by_default_and_bounded_by_the_candidates():
     assert envmod.EnvParams.from_config(CFG).n_features == len(layout.FEATURES)
     with pytest.raises(config.ConfigError, match="policy.ahead_branches"):
-        config.load(ROOT / "configs" / "smoke.yaml", ["policy.ahead_branches=25"])
+        config.load(ROOT / "tests" / "smoke.yaml", ["policy.ahead_branches=25"])

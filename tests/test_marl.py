@@ -3,11 +3,11 @@ interface JaxMARL's tooling relies on (LogWrapper, jit(vmap(step)), IPPO with an
 the action mask), and the hover rule for unavailable actions.
 
 Compilation dominates, so four functions are compiled once for the module on the smoke
-preset (an episode is T_max = 8 steps) and shared by every test: the adapter's reset and
-step under JaxMARL's own `LogWrapper` (`jax.jit(jax.vmap(env.step))`, as JaxMARL's
-baselines step it; the step restarts finished episodes), and sim.env's reset and step as
-the reference. The IPPO steps the environments through that shared step, so only its
-small network functions compile anew.
+config (tests/smoke.yaml: an episode is T_max = 8 steps) and shared by every test: the
+adapter's reset and step under JaxMARL's own `LogWrapper` (`jax.jit(jax.vmap(env.step))`,
+as JaxMARL's baselines step it; the step restarts finished episodes), and sim.env's reset
+and step as the reference. The IPPO steps the environments through that shared step, so
+only its small network functions compile anew.
 """
 
 from __future__ import annotations
@@ -30,9 +30,10 @@ from jaxmripp.sim import env as envmod
 from jaxmripp.sim.observation import N_ROBOT_STATE
 from jaxmripp.sim.params import DynamicParams, EnvParams
 
-SMOKE = Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml"
+REPO = Path(__file__).resolve().parents[1]
+SMOKE = REPO / "tests" / "smoke.yaml"
 
-ENV = MRIPPEnv("smoke")
+ENV = MRIPPEnv(SMOKE)
 LOGGED = LogWrapper(ENV)
 N, L, T_MAX = ENV.num_agents, ENV.params.n_candidates, ENV.params.max_steps
 ENVS = 2
@@ -161,14 +162,19 @@ def test_unavailable_actions_hover():
 
 def test_preset_file_config_and_overrides():
     cfg = config.load(SMOKE, ["robots.count=3", "world.size=24"])
-    for env in (MRIPPEnv("smoke", ["robots.count=3", "world.size=24"]),
+    for env in (MRIPPEnv(str(SMOKE), ["robots.count=3", "world.size=24"]),
                 MRIPPEnv(SMOKE, ["robots.count=3", "world.size=24"]), MRIPPEnv(cfg)):
         assert env.cfg == cfg and env.params == EnvParams.from_config(cfg)
         assert env.agents == ["robot_0", "robot_1", "robot_2"]
-    with pytest.raises(ConfigError, match=r"^nosuch: no such preset; allowed: .*smoke"):
+    # A preset by name; without one, make train's.
+    named = MRIPPEnv("recipe_paper", ["robots.count=4"])
+    assert named.cfg == config.load(REPO / "configs" / "recipe_paper.yaml", ["robots.count=4"])
+    assert named.num_agents == 4 and named.cfg.sensor.model == "frustum"
+    assert MRIPPEnv().cfg == config.load(REPO / "configs" / "recipe_quick.yaml")
+    with pytest.raises(ConfigError, match=r"^nosuch: no such preset; allowed: .*recipe_quick"):
         MRIPPEnv("nosuch")
     with pytest.raises(ConfigError, match=r"world.size"):
-        MRIPPEnv("smoke", ["world.size=-3"])
+        MRIPPEnv(SMOKE, ["world.size=-3"])
     with pytest.raises(ConfigError, match=r"^overrides: allowed only with a preset"):
         MRIPPEnv(cfg, ["world.size=30"])
 

@@ -13,7 +13,7 @@ import pytest
 from jaxmripp.parallel import launch
 from jaxmripp.parallel.local import free_port_pair, host_devices_env, max_relative_difference
 
-TRAIN_SMOKE = ["train.py", "--config", "configs/smoke.yaml", "--no-eval"]
+TRAIN_SMOKE = ["train.py", "--config", "tests/smoke.yaml", "--no-eval"]
 
 
 def test_relative_difference_by_hand():

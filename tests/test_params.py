@@ -12,7 +12,7 @@ from jaxmripp import config
 from jaxmripp.sim.params import DynamicParams, EnvParams, stack
 
 ROOT = Path(__file__).resolve().parents[1]
-CFG = config.load(ROOT / "configs" / "smoke.yaml", [
+CFG = config.load(ROOT / "tests" / "smoke.yaml", [
     "radio.range=.inf", "radio.collision_distance=0.07", "robots.pad_spacing=0.08",
     "robots.budget=[3.0, 5.0]",
     "robots.turn_cost=0.03", "robots.start=[0.1, 0.2, 0.3]", "reward.alpha=7.5",
@@ -44,7 +44,7 @@ def test_static_params_hold_no_dynamic_value():
             for part in path.split("."):
                 obj = getattr(obj, part)
     # Two configs that differ only in dynamic values share their static params.
-    other = config.load(ROOT / "configs" / "smoke.yaml", ["radio.range=0.2"])
+    other = config.load(ROOT / "tests" / "smoke.yaml", ["radio.range=0.2"])
     assert EnvParams.from_config(other) == p
 
 

@@ -14,7 +14,7 @@ FAST = {"xla_backend_optimization_level": 0}
 
 
 def test_report_writes_its_files_and_a_row_per_planner(tmp_path):
-    cfg = config.load(ROOT / "configs" / "smoke.yaml",
+    cfg = config.load(ROOT / "tests" / "smoke.yaml",
                       ["train.eval_worlds=3", "eval.planners=[policy, random]"])
     run_dir = tmp_path / "run"
     # An untrained policy is enough: report restores the last checkpoint of the run.

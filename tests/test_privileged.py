@@ -17,7 +17,7 @@ from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import EnvParams
 from jaxmripp.sim.world import World
 
-CFG = cfgmod.load("configs/smoke.yaml", ["ppo.algo=mappo", "ppo.privileged_critic=true"])
+CFG = cfgmod.load("tests/smoke.yaml", ["ppo.algo=mappo", "ppo.privileged_critic=true"])
 
 
 def reference(height, voxels, valid, discovered, positions):
@@ -105,7 +105,7 @@ def test_the_critic_reads_them_and_the_actor_does_not(states):
 
 @pytest.mark.slow
 def test_a_run_with_the_privileged_critic_trains_and_exports(tmp_path):
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.algo=mappo", "ppo.privileged_critic=true",
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.algo=mappo", "ppo.privileged_critic=true",
                                              "train.updates=2", "train.updates_per_chunk=2"])
     state = trainmod.train(cfg, tmp_path / "run", log=lambda _: None, quiet=True)
     records = trainmod.read_metrics(tmp_path / "run")
@@ -119,7 +119,7 @@ def test_a_run_with_the_privileged_critic_trains_and_exports(tmp_path):
     # Evaluated like any run (the critic's extra inputs zero-filled).
     from jaxmripp import pipeline
 
-    sweep_cfg = cfgmod.load("configs/smoke.yaml", ["eval.worlds=2", "eval.trials=1",
+    sweep_cfg = cfgmod.load("tests/smoke.yaml", ["eval.worlds=2", "eval.trials=1",
                                                    "eval.planners=[policy]"])
     planner = pipeline.sweep_planner(tmp_path / "run", sweep_cfg, "policy")
     from jaxmripp.evaluation import sweep

@@ -29,7 +29,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # every deeper edge leaves the little a reset map knows to be free, and the tree's
 # invariants would be checked on a handful of nodes. The robots start at the (0, 0, 0)
 # corner.
-CFG = config.load(ROOT / "configs" / "smoke.yaml", ["safety.flight=truncate"])
+CFG = config.load(ROOT / "tests" / "smoke.yaml", ["safety.flight=truncate"])
 PARAMS = evaluate.eval_params(CFG, 2.0)
 DYN = evaluate.eval_dynamic(CFG, 2.0, radio_range=math.inf)
 FAST = {"xla_backend_optimization_level": 0}

@@ -33,7 +33,7 @@ from jaxmripp.runtime.gp import GaussianProcess, evaluation_poses
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 
 REPO = Path(__file__).resolve().parents[1]
-CFG = config.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3"])
+CFG = config.load(REPO / "tests/smoke.yaml", ["world.size=30", "robots.count=3"])
 
 
 def spec_of(cfg=CFG) -> RuntimeSpec:
@@ -126,7 +126,7 @@ def test_export_round_trip_is_exact_and_hashed(exported):
 
 
 def test_infinite_radio_range_survives_strict_json(tmp_path):
-    cfg = config.load(REPO / "configs/smoke.yaml", ["radio.range=.inf"])
+    cfg = config.load(REPO / "tests/smoke.yaml", ["radio.range=.inf"])
     _, params = init_params(cfg)
     export.export(cfg, params, tmp_path)
     text = (tmp_path / "policy.json").read_text()

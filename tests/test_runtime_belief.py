@@ -154,7 +154,7 @@ def test_labels_join_two_walls_once_a_column_links_them():
 # ---------------------------------------------------------------------------------------
 # Windows in sense and in the map deltas
 
-CFG = cfgmod.load(REPO / "configs/smoke.yaml", ["world.size=30", "robots.count=3",
+CFG = cfgmod.load(REPO / "tests/smoke.yaml", ["world.size=30", "robots.count=3",
                                                  "policy.belief_features=true"])
 SPEC = export.runtime_spec(CFG)
 G = SPEC.size
@@ -164,7 +164,7 @@ def test_the_export_header_carries_the_belief_and_its_prior():
     assert SPEC.belief_features and SPEC.belief_strength == CFG.policy.belief_strength
     assert SPEC.belief_prior == sim_belief.prior(CFG.world)
     assert SPEC.features == FEATURES + BELIEF_FEATURES
-    assert not export.runtime_spec(cfgmod.load(REPO / "configs/smoke.yaml")).belief_features
+    assert not export.runtime_spec(cfgmod.load(REPO / "tests/smoke.yaml")).belief_features
 
 
 def building_voxels(x, y, height):

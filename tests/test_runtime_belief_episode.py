@@ -24,7 +24,7 @@ from jaxmripp.spec.layout import BELIEF_FEATURES, FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_episode import keys_of, make_sim, runtime_episode
 
-CFG = config.load(REPO / "configs/smoke.yaml", [
+CFG = config.load(REPO / "tests/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[6.0, 6.0]", "episode.max_steps=14",
     "candidates.positions=8", "candidates.oversample=3", "policy.belief_features=true"])
 BELIEF = [len(FEATURES) + k for k in range(len(BELIEF_FEATURES))]

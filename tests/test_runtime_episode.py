@@ -40,7 +40,7 @@ from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_flight import interval_reference
 
-CFG = config.load(REPO / "configs/smoke.yaml", [
+CFG = config.load(REPO / "tests/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
     "candidates.positions=8", "candidates.oversample=3"])
 KAPPA, LAM = 1.0, 0.5  # both GPs enter the score
@@ -305,7 +305,7 @@ def test_the_runtime_holds_exactly_the_robots_the_env_holds():
     """A crowded team: chosen flights conflict, and the higher-id robot of each pair in
     range holds. `runtime_episode` checks every round that the robots whose `resolve`
     held are exactly those the env held (jaxmripp.sim.flight.holds)."""
-    cfg = config.load(REPO / "configs/smoke.yaml", [
+    cfg = config.load(REPO / "tests/smoke.yaml", [
         "world.size=30", "candidates.positions=8", "candidates.oversample=3"] + CROWDED)
     crowded = make_sim(cfg)
     holds = 0
@@ -365,7 +365,7 @@ def test_robots_that_met_out_of_range_part_alike_with_escape():
     """safety.escape on both sides: robots that came within d_c while out of radio range
     (rho below the pads' spacing, d_c just under rho) are still offered the flights that
     take them no closer, and the runtime's filter passes every pose the env offers then."""
-    cfg = config.load(REPO / "configs/smoke.yaml", [
+    cfg = config.load(REPO / "tests/smoke.yaml", [
         "world.size=30", "candidates.positions=8", "candidates.oversample=3",
         "robots.count=4", "robots.budget=[6.0, 6.0]", "robots.pad_spacing=0.16",
         "radio.range=0.15", "radio.collision_distance=0.12", "safety.escape=true"])

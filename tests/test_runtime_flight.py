@@ -400,7 +400,7 @@ def test_export_header_carries_safety_and_other_flight_modes_and_removed_setting
     assert header["config"]["safety"] == dataclasses.asdict(CFG.safety)
     assert header["config"]["robots"]["pad_spacing"] == CFG.robots.pad_spacing
     assert not spec.escape
-    assert spec_of(config.load(REPO / "configs/smoke.yaml", ["safety.escape=true"])).escape
+    assert spec_of(config.load(REPO / "tests/smoke.yaml", ["safety.escape=true"])).escape
     without = export.header(CFG)
     del without["config"]["safety"]["escape"]  # optional: absent means off
     assert not RuntimeSpec.from_header(json.loads(json.dumps(without))).escape

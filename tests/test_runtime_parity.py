@@ -62,7 +62,7 @@ from test_runtime_flight import interval_reference
 
 # gp.catchup_rounds = 0 leaves the feeding 2 rounds for 2 peers and none to catch up, so
 # backlogs build up and which peer each round picks matters.
-CFG = config.load(REPO / "configs/smoke.yaml", [
+CFG = config.load(REPO / "tests/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
     "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0"])
 SEEDS = tuple(range(8))  # the episodes are cheap next to compiling the env

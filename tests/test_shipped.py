@@ -1,5 +1,7 @@
 """The shipped policies (pretrained/*): every figure their metadata.json gives comes from a
-file a command wrote, and the default policy plans better than the simple planners.
+file a command wrote, and the default policy plans better than the simple planners. The
+same holds of the alternatives measured that no longer ship (docs/results/alternatives/*:
+their metadata.json, config.yaml and result files, without the weights).
 
 metadata.json is written by `python -m jaxmripp.ship` (or `--metadata` from the folder's
 own files); each check below reads the source files itself.
@@ -7,15 +9,20 @@ own files); each check below reads the source files itself.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 
 from jaxmripp import config as cfgmod, demo
+from jaxmripp.config import presets
 
 REPO = Path(__file__).resolve().parents[1]
 SHIPPED = sorted(p.name for p in (REPO / "pretrained").iterdir() if p.is_dir())
+ALTERNATIVES = REPO / "docs" / "results" / "alternatives"
+MEASURED = [REPO / "pretrained" / name for name in SHIPPED] + sorted(
+    p for p in ALTERNATIVES.iterdir() if p.is_dir())
 NOT_FIGURES = (".command", ".rules", ".train_minutes")  # ship.py's; checked separately
 
 
@@ -43,22 +50,38 @@ def test_training_figures_are_the_folders_own(name):
     ended = sum(r.get("episodes", 1) for r in last)
     found = sum(r["discovered"] * r.get("episodes", 1) for r in last)
     assert meta["training_discovered"] == round(found / ended, 4)
-    prefix = "python train.py --config "
+    prefix = "jaxmripp train --config "
     assert meta["command"].startswith(prefix)
-    assert cfgmod.load(REPO / meta["command"][len(prefix):]) == cfg
+    # a preset's name or a path, then the seed and start as overrides
+    source, *overrides = meta["command"][len(prefix):].split()
+    trained = cfgmod.load(source if presets.is_name(source) else REPO / source, overrides)
+    # but for train.name, which only names the run's folder
+    assert dataclasses.replace(trained, train=dataclasses.replace(
+        trained.train, name=cfg.train.name)) == cfg
     assert meta.get("init_from", "") == cfg.train.init_from
     header = json.loads((folder / "policy.json").read_text())
     assert meta["checkpoint"] == header["source"]["checkpoint"]
 
 
-@pytest.mark.parametrize("name", SHIPPED)
-def test_every_evaluation_figure_is_in_the_result_file_it_names(name):
+def test_four_policies_ship_and_the_others_keep_their_figures():
+    assert SHIPPED == ["default", "default_fast", "paper", "scale"]
+    for folder in ALTERNATIVES.iterdir():
+        assert sorted(p.name for p in folder.iterdir()) == sorted(
+            ["config.yaml", "metadata.json", "quality.jsonl" if (folder / "quality.jsonl")
+             .is_file() else "scale.jsonl"]), folder.name
+        assert not (REPO / "pretrained" / folder.name).exists()
+        evaluations = json.loads((folder / "metadata.json").read_text())["evaluations"]
+        assert {(REPO / e["results"]).parent for e in evaluations} == {folder}
+
+
+@pytest.mark.parametrize("folder", MEASURED, ids=lambda path: path.name)
+def test_every_evaluation_figure_is_in_the_result_file_it_names(folder):
     """Each evaluation names a committed result file; its command, rules and figures are
     that file's, and the command evaluated this folder's policy. A file printed before
     benchmarks named their command and rules has them in what the same run's --out wrote
     beside it (results.md's command, summary.json's sweep settings), whose means are the
     file's figures."""
-    meta = json.loads((REPO / "pretrained" / name / "metadata.json").read_text())
+    meta = json.loads((folder / "metadata.json").read_text())
     assert meta["evaluations"], "no evaluation figures"
     for evaluation in meta["evaluations"]:
         path = REPO / evaluation["results"]
@@ -81,7 +104,7 @@ def test_every_evaluation_figure_is_in_the_result_file_it_names(name):
         command = evaluation["command"].split()
         policy = (command[command.index("--policy") + 1] if "--policy" in command else
                   f"pretrained/{command[command.index('--preset') + 1]}")
-        assert policy == f"pretrained/{name}"
+        assert policy == f"pretrained/{folder.name}"  # where it was when evaluated
 
 
 def test_rules_of_a_quality_result_name_its_worlds_and_trials():
@@ -90,7 +113,7 @@ def test_rules_of_a_quality_result_name_its_worlds_and_trials():
     meta = json.loads((REPO / "pretrained/default_fast/metadata.json").read_text())
     rules = meta["evaluations"][0]["rules"]
     assert (rules["worlds"], rules["trials"], rules["config"]) == (
-        25, 10, "configs/eval_paper.yaml")
+        25, 10, "configs/protocol_table1.yaml")
     assert "eval.radio_ranges=[.inf, 0.1]" in rules["overrides"]
 
 

@@ -15,7 +15,7 @@ from jaxmripp.evaluation import cells, evaluate, planners, sweep
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"xla_backend_optimization_level": 0}
 RANGES, BUDGETS = (0.1, 0.3, float("inf")), (1.0, 2.0)
-CFG = config.load(ROOT / "configs" / "smoke.yaml", [
+CFG = config.load(ROOT / "tests" / "smoke.yaml", [
     "world.size=20", "robots.start=[0.0, 0.0, 0.5]", "candidates.positions=4",
     "candidates.oversample=3", "eval.planners=[coordinated]", "eval.team_sizes=[2]",
     "eval.world_sizes=[20]", "eval.radio_ranges=[0.1, 0.3, .inf]", "eval.budgets=[1.0, 2.0]",

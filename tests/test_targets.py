@@ -23,7 +23,7 @@ from jaxmripp.evaluation import stats
 from jaxmripp.sim import env as envmod, episode, oracle, sensing, view
 
 ROOT = Path(__file__).resolve().parents[1]
-CFG = config.load(ROOT / "configs" / "smoke.yaml", ["safety.flight=truncate"])
+CFG = config.load(ROOT / "tests" / "smoke.yaml", ["safety.flight=truncate"])
 PARAMS = evaluate.eval_params(CFG, 4.0)
 BRANCHES = 4
 

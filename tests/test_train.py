@@ -22,7 +22,7 @@ from jaxmripp.spec import layout
 
 @pytest.fixture(scope="module")
 def cfg():
-    return cfgmod.load("configs/smoke.yaml")
+    return cfgmod.load("tests/smoke.yaml")
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_checkpoint_restore_gives_bit_identical_actions(cfg, trainer, full_run):
 
 def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
     run_dir, _ = full_run
-    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32"])
+    wide = cfgmod.load("tests/smoke.yaml", ["policy.width=32"])
     template = trainmod.Trainer.build(wide).abstract_state()
     checkpoints = Checkpoints(run_dir / "checkpoints", 3)
     with pytest.raises(CheckpointError) as err:
@@ -104,7 +104,7 @@ def test_checkpoint_of_another_shape_gives_one_clear_error(full_run):
 def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, tmp_path):
     run_dir, state = full_run
     # Another team size: the attention policy's parameters do not depend on it.
-    three = cfgmod.load("configs/smoke.yaml", ["robots.count=3", "train.updates=0",
+    three = cfgmod.load("tests/smoke.yaml", ["robots.count=3", "train.updates=0",
                                                f"train.init_from={run_dir}"])
     started = trainmod.train(three, tmp_path / "from_run", log=lambda _: None,
                              initial_params=pipeline.initial_params(three))
@@ -116,7 +116,7 @@ def test_init_from_a_run_or_an_export_starts_from_its_parameters(cfg, full_run, 
     assert _leaves_equal(trainmod.Trainer.build(three).init_from(exported, "export").params,
                          state.params)
     # Errors name the key: a source that is neither, another network, none passed.
-    wide = cfgmod.load("configs/smoke.yaml", ["policy.width=32", "train.updates=0"])
+    wide = cfgmod.load("tests/smoke.yaml", ["policy.width=32", "train.updates=0"])
     for problem in (lambda: pipeline.initial_params(cfgmod.from_dict(
                         {"train": {"init_from": str(tmp_path / "nowhere")}}, wide)),
                     lambda: trainmod.Trainer.build(wide).init_from(exported, "export"),
@@ -141,7 +141,7 @@ def _random_observations(key, trainer, batch):
 
 @pytest.mark.parametrize("algo", ["ippo", pytest.param("mappo", marks=pytest.mark.slow)])
 def test_ppo_loss_falls_on_a_fixed_batch(algo):
-    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.algo={algo}"])
+    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.algo={algo}"])
     trainer = trainmod.Trainer.build(cfg)
     state = trainer.init()
     steps, envs, robots = 4, cfg.train.envs, cfg.robots.count
@@ -183,9 +183,9 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
     add nothing (and no NaN). The weight falls linearly to 0 over ppo.teacher_updates."""
     facade, coef = 3.0, 0.7  # ppo.teacher_facade: not the default 2
-    cfg = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
+    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                              f"ppo.teacher_facade={facade}"])
-    trainer = trainmod.Trainer.build(cfgmod.load("configs/smoke.yaml"))
+    trainer = trainmod.Trainer.build(cfgmod.load("tests/smoke.yaml"))
     params = trainer.init().params
     envs, robots = cfg.train.envs, cfg.robots.count
     obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
@@ -242,13 +242,13 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
                            zeros, value, moments, cfg.ppo, ppo.Teacher.at(cfg.ppo, 0))
     assert float(parts["imitation"]) == 0.0
 
-    decaying = cfgmod.load("configs/smoke.yaml", [f"ppo.teacher_coef={coef}",
+    decaying = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
                                                   "ppo.teacher_updates=8"]).ppo
     weights = [float(ppo.Teacher.at(decaying, u).weight) for u in (0, 2, 8, 20)]
     np.testing.assert_allclose(weights, [coef, 0.75 * coef, 0.0, 0.0], rtol=1e-6)
     assert float(ppo.Teacher.at(cfg.ppo, 20).weight) == np.float32(coef)
     # Compiled, as the rollout computes it: exactly 0 from teacher_updates on.
-    fifty = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
+    fifty = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
     jitted = jax.jit(lambda u: ppo.Teacher.at(fifty, u).weight)
     assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
 
@@ -266,7 +266,7 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
     """ppo.teacher = nbv_ahead: the transitions carry that planner's choices, feasible on
     the observations, and some differ from the one-step NBV choice; with the weight at 0
     the rollout skips the planner and stores NO_CHOICE."""
-    cfg = cfgmod.load("configs/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
                                              "eval.nbv_ahead_branches=4"])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
@@ -297,7 +297,7 @@ def test_gae_matches_a_hand_computed_example():
 
 
 def _smoke_command(runs) -> list[str]:
-    return ["train.py", "--config", "configs/smoke.yaml", "--no-eval", "--runs", str(runs)]
+    return ["train.py", "--config", "tests/smoke.yaml", "--no-eval", "--runs", str(runs)]
 
 
 def _final_params(cfg, run_dir):

@@ -36,7 +36,7 @@ def _same_run(a_dir, a, b_dir, b):
 def test_a_run_trains_the_same_whatever_its_chunk_size(cfg, full_run, tmp_path):
     """One chunk of all the run's updates against the fixture's one-update chunks."""
     run_dir = tmp_path / "one_chunk"
-    state = trainmod.train(cfgmod.load("configs/smoke.yaml", [
+    state = trainmod.train(cfgmod.load("tests/smoke.yaml", [
         f"train.updates_per_chunk={cfg.train.updates}"]), run_dir, log=lambda _: None)
     assert [r["update"] for r in trainmod.read_metrics(full_run[0])] == \
         list(range(1, cfg.train.updates + 1))
@@ -55,7 +55,7 @@ def test_every_scalar_of_every_update_reaches_tensorboard(full_run):
 
 def test_wandb_asked_for_but_not_installed_is_one_clear_error(tmp_path, monkeypatch):
     monkeypatch.setitem(sys.modules, "wandb", None)  # what find_spec reports when absent
-    cfg = cfgmod.load("configs/smoke.yaml", ["train.log=[jsonl, wandb]"])
+    cfg = cfgmod.load("tests/smoke.yaml", ["train.log=[jsonl, wandb]"])
     with pytest.raises(cfgmod.ConfigError) as err:
         trainmod.train(cfg, tmp_path / "run", log=lambda _: None)
     assert str(err.value) == ("train.log: got ['jsonl', 'wandb'], but wandb is not installed; "
@@ -140,3 +140,23 @@ def test_the_trained_smoke_policy_finds_more_than_its_initial_policy(cfg, full_r
     trained = np.asarray(found(jax.device_get(state.params)))
     assert trained.mean() > 1.5 * initial.mean()
     assert (trained > initial).sum() > 2 * (trained < initial).sum()
+
+
+def test_a_stage_trains_into_its_run_dir_from_the_folder_before(full_run, tmp_path, capsys):
+    """`train.py --run-dir B train.init_from=A`, as `make scale` chains its stages: the
+    run is made in exactly B (new, or empty as here), nothing beside it, and starts from
+    A's parameters."""
+    from jaxmripp.cli import train as train_cli  # noqa: PLC0415
+
+    run_a, _ = full_run
+    stage = tmp_path / "stages" / "b"
+    stage.mkdir(parents=True)
+    status = train_cli.main(["--config", "tests/smoke.yaml", "--run-dir", str(stage),
+                             "--no-eval", "--quiet", "train.updates=0",
+                             f"train.init_from={run_a}"])
+    out = capsys.readouterr().out
+    assert status == 0
+    assert f"run folder: {stage}\n" in out and f"parameters from {run_a}\n" in out
+    assert [p.name for p in stage.parent.iterdir()] == ["b"]
+    assert cfgmod.load(stage / "config.yaml") == cfgmod.load(
+        "tests/smoke.yaml", ["train.updates=0", f"train.init_from={run_a}"])

@@ -82,7 +82,7 @@ def test_a_killed_train_py_resumes_to_the_uninterrupted_run(cfg, full_run, tmp_p
     runs = tmp_path / "runs"
     script = (f"import sys; sys.path.insert(0, 'tests'); import crash_points, train; "
               f"crash_points.install({point!r}, crash_points.kill); "
-              f"sys.exit(train.main(['--config', 'configs/smoke.yaml', '--no-eval', "
+              f"sys.exit(train.main(['--config', 'tests/smoke.yaml', '--no-eval', "
               f"'--quiet', '--runs', {str(runs)!r}]))")
     killed = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
                             timeout=600)

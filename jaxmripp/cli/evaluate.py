@@ -3,9 +3,10 @@
 
 Without --policy only the baselines in eval.planners run. Each --policy restores a trained
 run (its config.yaml and checkpoints) or a shipped export under the given name; repeat it
-to compare several (e.g. the ablations of the eval_ablation preset). Results go to DIR
-(default: the first policy's RUN_DIR/eval, else runs/<config name>/eval): results.md,
-runs.csv, runs.json, summary.json and plots.
+to compare several (e.g. the variants benchmarks/ablation.py trains). Results go to DIR
+(default: the first policy's RUN_DIR/eval for a training run, runs/<folder name>/eval for
+a shipped export such as pretrained/default, which stays as shipped; without --policy
+runs/<config name>/eval): results.md, runs.csv, runs.json, summary.json and plots.
 """
 
 import argparse
@@ -42,7 +43,7 @@ def parser(prog: str | None = None) -> ArgumentParser:
                      help="skip the separate planner.act timing (one compile less per cell)")
     out.add_argument("--quiet", action="store_true",
                      help="no compilation lines or progress bar (the results are the same)")
-    add_config_arguments(out, "eval_paper", "dotted overrides, e.g. eval.worlds=5")
+    add_config_arguments(out, "protocol_table1", "dotted overrides, e.g. eval.worlds=5")
     launch.add_arguments(out)
     return out
 

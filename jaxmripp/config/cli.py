@@ -45,7 +45,7 @@ def presets_epilog() -> str:
 
 def add_config_arguments(parser: argparse.ArgumentParser, default: str | None,
                          overrides_help: str = "dotted overrides, e.g. world.size=64") -> None:
-    """`--config` (default `default`, a preset's name), `--print-config` and the
+    """`--config` (`default`: a preset's name), `--print-config` and the
     positional dotted overrides; `default=None` leaves `--config` out (a command whose
     base config is fixed)."""
     if default is not None:

@@ -1,6 +1,6 @@
 """YAML presets and dotted overrides, merged into the defaults and validated on load.
 
-A preset is a file or the name of one packaged in jaxmripp/configs (`default`; see
+A preset is a file or the name of one packaged in jaxmripp/configs (`recipe_quick`; see
 `presets`). It may name a `base` preset (a path relative to its own folder) whose values it
 changes; overrides (`world.size=64`, the value parsed as YAML) apply last. Unknown keys,
 mistyped values and values out of range raise `ConfigError` with one line.

@@ -1,10 +1,11 @@
 """The presets shipped inside the package (jaxmripp/configs/*.yaml) and where a name or a
 path given on the command line points.
 
-`--config default` is the packaged default.yaml from any working directory; a path to a
-YAML file works as before (the repository's `configs/` links to the packaged folder, so
-`configs/default.yaml` from the repository root is the same file). Each preset starts with
-a one-line summary comment, which `--help` lists.
+`--config recipe_quick` is the packaged recipe_quick.yaml from any working directory; a path
+to a YAML file works as well (the repository's `configs/` links to the packaged folder, so
+`configs/recipe_quick.yaml` from the repository root is the same file). Each preset starts
+with a one-line summary comment, which `--help` lists. The names say what a preset is:
+`recipe_*` trains a policy, `world_*` sets up a world, `protocol_*` evaluates.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from pathlib import Path
 from jaxmripp.config.errors import ConfigError
 
 PRESETS = Path(__file__).resolve().parents[1] / "configs"
+DEFAULT = "recipe_quick"  # what `make train` trains: --config's default
 # The source checkout the package was installed from (an editable install); holds
 # benchmarks/ and pretrained/ where it is one.
 CHECKOUT = Path(__file__).resolve().parents[2]
@@ -59,8 +61,8 @@ def listing() -> str:
 
 def in_checkout(path: str | Path) -> Path:
     """A relative path missing from the working directory but present in the source
-    checkout (e.g. `pretrained/default_ppo`, which `train.init_from` of a curriculum preset
-    names) as the checkout's; otherwise the path as given."""
+    checkout (e.g. `pretrained/default` as a `train.init_from`) as the checkout's; otherwise
+    the path as given."""
     path = Path(path)
     if path.is_absolute() or path.exists() or not (CHECKOUT / path).exists():
         return path

@@ -15,7 +15,7 @@ jaxmripp.config does not define them):
 - budget_mode: "team" (eval.budgets are team budgets B, split evenly) or "per_robot"
   (eval.budgets are per-robot budgets; the team gets N times as much);
 - zip_with_size: names among radio_ranges, budgets, team_sizes whose i-th entry goes with
-  the i-th world size instead of being crossed with all of them (the scale preset pairs
+  the i-th world size instead of being crossed with all of them (protocol_scale pairs
   rho = 0.2 / 0.15 / 0.12 with G = 75 / 100 / 125);
 - pairs: "a:b" planner pairs to compare in every shape, paired by world
   (`stats.paired_by_world`; default: the first planner against each other one);

@@ -42,17 +42,18 @@ from flax import struct
 from jaxmarl.environments.multi_agent_env import MultiAgentEnv
 from jaxmarl.environments.spaces import Box, Discrete
 
-from jaxmripp.config import Config, ConfigError, load
+from jaxmripp.config import Config, ConfigError, load, presets
 from jaxmripp.sim import env as envmod
 from jaxmripp.sim.observation import N_ROBOT_STATE, Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
 
 
-def load_config(source: str | Path = "default", overrides: Sequence[str] = ()) -> Config:
-    """A preset name (`smoke`: jaxmripp/configs/smoke.yaml) or a config file, with dotted
-    overrides (`world.size=64`), read and validated by `jaxmripp.config.load`; a bad name,
-    file or value raises `ConfigError` with one line."""
+def load_config(source: str | Path = presets.DEFAULT,
+                overrides: Sequence[str] = ()) -> Config:
+    """A preset name (`recipe_quick`: jaxmripp/configs/recipe_quick.yaml, the default) or a
+    config file, with dotted overrides (`world.size=64`), read and validated by
+    `jaxmripp.config.load`; a bad name, file or value raises `ConfigError` with one line."""
     return load(source, overrides)
 
 
@@ -76,7 +77,8 @@ class MRIPPEnv(MultiAgentEnv):
     `jaxmripp.sim.env` parameters the env runs with.
     """
 
-    def __init__(self, config: str | Path | Config = "default", overrides: Sequence[str] = ()):
+    def __init__(self, config: str | Path | Config = presets.DEFAULT,
+                 overrides: Sequence[str] = ()):
         if isinstance(config, Config):
             if overrides:
                 raise ConfigError("overrides: allowed only with a preset name or config "

@@ -1,6 +1,6 @@
 """Several processes of one run on this machine (tests, benchmarks and trying a launch).
 
-    python -m jaxmripp.parallel.local 2 train.py --config configs/smoke.yaml
+    python -m jaxmripp.parallel.local 2 train.py --config tests/smoke.yaml
 
 starts `python train.py ... --processes 2 --process-id I --coordinator 127.0.0.1:PORT`
 for I = 0, 1 on a free port pair, prints process 0's output and returns the first failing
