@@ -49,7 +49,7 @@ def test_shipped_policies_are_what_their_commands_train(metadata):
     # A preset that a shipped policy's command names must still train that policy: a
     # change to a base preset (recipe_quick.yaml) must not change what an older command means.
     command = yaml.safe_load(metadata.read_text())["command"].split("&&")[-1].split()
-    assert command[:3] == ["python", "train.py", "--config"], command
+    assert command[:3] == ["jaxmripp", "train", "--config"], command
     source, overrides = command[3], command[4:]  # a preset's name or a path
     trained = cfgmod.load(metadata.parent / "config.yaml")
     loaded = cfgmod.load(source if presets.is_name(source) else REPO / source, overrides)
