@@ -111,6 +111,21 @@ def summary_table(root: Path, path: str, *planners: str) -> list[str]:
 HEADLINES = ("quality.policy_pct", "scale.pct.policy.relay")
 
 
+def seeds_line(root: Path, path: str, rho: str = "inf") -> list[str]:
+    """The mean +- standard deviation (ddof 1) over training seeds of an evaluation
+    summary.json whose planners are one recipe's seeds, at radio range `rho`."""
+    rows = [r for r in json.loads((root / path).read_text())["summary"]
+            if _rho(r["radio_range"]) == rho]
+    if len(rows) < 2:
+        raise RenderError(f"{path}: {len(rows)} seeds at rho = {rho}; allowed: 2 or more")
+    means = [float(r["mean"]) for r in rows]
+    mean = sum(means) / len(means)
+    std = math.sqrt(sum((m - mean) ** 2 for m in means) / (len(means) - 1))
+    each = ", ".join(f"{r['planner']} {float(r['mean']):.2f}" for r in rows)
+    return [f"**{mean:.2f} +- {std:.2f}** over {len(rows)} training seeds at rho = {rho} "
+            f"({each}; {path})."]
+
+
 def policies_table(root: Path) -> list[str]:
     """The shipped policies: how each was trained and its headline figure."""
     lines = ["| policy | trained by | seed | minutes (2 cores) | updates | % found | figure | "
@@ -224,7 +239,7 @@ def include(root: Path, path: str) -> list[str]:
 
 BLOCKS = {"summary": summary_table, "policies": policies_table,
           "generalize": generalize_table, "alternatives": alternatives_table,
-          "metrics": metrics_table, "benchmarks": benchmarks_table,
+          "metrics": metrics_table, "seeds": seeds_line, "benchmarks": benchmarks_table,
           "scale_grid": scale_grid, "table": markdown_table, "include": include}
 
 

@@ -101,3 +101,16 @@ def test_the_summary_table_reads_every_planner_and_range():
     row = next(r for r in summary if r["planner"] == "policy" and r["radio_range"] == "inf")
     assert lines[2].startswith(f"| policy | {row['mean']:.2f} +- {row['std']:.2f} |")
     assert lines[0].count("rho =") == len({r["radio_range"] for r in summary})
+
+
+def test_the_seed_line_is_the_mean_and_sample_std_of_the_seeds():
+    import statistics
+
+    path = "docs/results/recipe_default_seeds/summary.json"
+    summary = json.loads((ROOT / path).read_text())["summary"]
+    means = [r["mean"] for r in summary if r["radio_range"] == "inf"]
+    line = render.seeds_line(ROOT, path, "inf")[0]
+    assert line.startswith(f"**{statistics.mean(means):.2f} +- {statistics.stdev(means):.2f}** "
+                           f"over {len(means)} training seeds")
+    with pytest.raises(render.RenderError, match="0 seeds"):
+        render.seeds_line(ROOT, path, "0.3")
