@@ -102,8 +102,10 @@ def test_every_evaluation_figure_is_in_the_result_file_it_names(folder):
                 assert figures[figure] == pytest.approx(row["mean"], abs=1e-4)
         assert rules == [evaluation["rules"]]
         command = evaluation["command"].split()
-        policy = (command[command.index("--policy") + 1] if "--policy" in command else
-                  f"pretrained/{command[command.index('--preset') + 1]}")
+        # the policy whose figures these are: --policy's, --seeds' first, or the preset's
+        given = next((command[command.index(o) + 1] for o in ("--policy", "--seeds")
+                      if o in command), None)
+        policy = given or f"pretrained/{command[command.index('--preset') + 1]}"
         assert policy == f"pretrained/{folder.name}"  # where it was when evaluated
 
 
