@@ -21,24 +21,12 @@ from jaxmripp.config import presets
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.rules import validate
 from jaxmripp.config.sections import Config
+from jaxmripp.spec import removed
 
 _MAX_BASE_DEPTH = 8  # `base` presets nested deeper than this are refused (cycles)
-# Keys removed from the configuration, each with the value its code path now always takes
-# (as YAML shows it): a config.yaml holding that value loads, any other is refused.
-REMOVED: dict[str, Any] = {
-    "train.radio_ranges": [],
-    "radio.map_reach": "radio",
-    "radio.sector_split": "angle",
-    "radio.sector_count": 0,
-    "train.sectors": False,
-    "reward.team_share": 0.0,
-    "policy.claims": False,
-    "safety.takeoff_scan": False,
-    "safety.intents": True,
-    "safety.priority": "id",
-    "gp.peer_rounds": 255,  # uncapped: N - 1 for every team of at most 256 robots
-    "policy.view_prior": 0.0,
-}
+# Keys removed from the configuration, readable at their built-in value only
+# (jaxmripp.spec.removed).
+REMOVED: dict[str, Any] = removed.BUILT_IN
 
 
 def _coerce_tuple(key: str, value: Any, annotation) -> tuple:
@@ -105,13 +93,7 @@ def _unknown_key(key: str, known: typing.Iterable[str]) -> ConfigError:
 def _check_removed(key: str, value: Any) -> None:
     """A removed key is accepted at the value its code now builds in, else refused."""
     built_in = REMOVED[key]
-    if isinstance(built_in, list):
-        same = isinstance(value, (list, tuple)) and list(value) == built_in
-    elif isinstance(built_in, bool) or isinstance(value, bool):
-        same = value is built_in
-    else:
-        same = value == built_in
-    if not same:
+    if not removed.is_built_in(key, value):
         as_yaml = lambda v: str(v).lower() if isinstance(v, bool) else shown(v)  # noqa: E731
         raise ConfigError(f"{key}: got {as_yaml(value)}, a removed setting; allowed: "
                           f"{as_yaml(built_in)} (the one built in) or leaving it out")

@@ -12,6 +12,7 @@ from typing import Any, Mapping
 
 from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
+from jaxmripp.spec import removed
 from jaxmripp.spec.layout import features
 from jaxmripp.spec.view import FACADE_TOPS
 
@@ -27,17 +28,11 @@ class GPSpec:
     eval_grid: int
 
 
-# Settings removed from the configuration, each with the one value the runtime now builds
-# in: a header written before their removal holds them, and is refused at any other value.
-REMOVED = {
-    ("radio", "map_reach"): "radio",
-    ("radio", "sector_split"): "angle",
-    ("radio", "sector_count"): 0,
-    ("safety", "takeoff_scan"): False,
-    ("safety", "intents"): True,
-    ("safety", "priority"): "id",
-    ("gp", "peer_rounds"): 255,  # uncapped: N - 1 for every team of at most 256 robots
-}
+# The removed settings (jaxmripp.spec.removed) of the sections the runtime flies by, as
+# (section, key): a header written before their removal holds them, and is refused at any
+# other value than the one built in.
+REMOVED = {tuple(key.split(".")): value for key, value in removed.BUILT_IN.items()
+           if key.split(".")[0] in ("radio", "safety", "gp")}
 
 _GP_FIELDS = typing.get_type_hints(GPSpec)  # {field: int or float}
 
@@ -128,7 +123,7 @@ class RuntimeSpec:
                 "known_free)")
         for (name, key), built_in in REMOVED.items():
             value = section(name).get(key, built_in)
-            if type(value) is not type(built_in) or value != built_in:
+            if not removed.is_built_in(f"{name}.{key}", value):
                 raise WeightsFormatError(
                     f"export header: config.{name}.{key} is {value!r}, a removed setting; "
                     f"the runtime has only {built_in!r} (export a policy trained without it)")
