@@ -3,10 +3,11 @@ non-learning planner.
 
 N = 3 robots, team budget B = 10, W held-out random-layout worlds x T trials, radio range
 rho = inf and 0.1; planners: the policy, nbv_targets, nbv_ahead, nbv_team, nbv,
-coordinated, greedy, mcts, rig, random, and three upper references that read the truth
+coordinated, greedy, mcts, rig, random, and four upper references that read the truth
 (never "baselines"): the window oracle per unit of cost (oracle), the same looking a
-flight ahead with claims heard only in radio range (oracle_ahead), and nbv_targets with
-each building's true remaining windows (oracle_rate). Every planner runs the same worlds
+flight ahead with claims heard only in radio range (oracle_ahead), nbv_targets with
+each building's true remaining windows (oracle_rate), and that on the true city
+(oracle_city: it knows every building's shape, not where its windows are). Every planner runs the same worlds
 and trials, so comparisons are paired by world (`jaxmripp.evaluation.stats`).
 Preset `default` is our world (the protocol_table1 preset, configs/protocol_table1.yaml);
 `paper` the reference's world (protocol_table1_paper_world, the same protocol). Figures
@@ -22,6 +23,7 @@ Preset `default` is our world (the protocol_table1 preset, configs/protocol_tabl
     quality.oracle_pct               the window oracle at rho = inf
     quality.ceiling_pct              oracle_ahead at rho = inf
     quality.rate_ceiling_pct         oracle_rate at rho = inf
+    quality.city_ceiling_pct         oracle_city at rho = inf
     quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
     quality.train_minutes            the policy's training time (its metrics.jsonl)
     quality.pct.<planner>.rho<r>     every planner and range
@@ -69,7 +71,7 @@ BASELINES = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv", "coordinated", "gree
              "rig", "random")
 REFERENCES = cfgmod.REFERENCES
 CEILINGS = {"oracle": "quality.oracle_pct", "oracle_ahead": "quality.ceiling_pct",
-            "oracle_rate": "quality.rate_ceiling_pct"}
+            "oracle_rate": "quality.rate_ceiling_pct", "oracle_city": "quality.city_ceiling_pct"}
 
 
 @entry_point

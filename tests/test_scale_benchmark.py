@@ -210,3 +210,53 @@ def test_ranges_figures_come_from_the_runs_of_each_range(tmp_path, monkeypatch, 
         p = stats.ttest_ind(relay, found["nbv", "global", 64, float("inf")], equal_var=False).pvalue
         assert ratio["p"] == pytest.approx(p, rel=1e-2)
     assert figure.stat().st_size > 0
+
+
+def _scale_module():
+    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    return scale
+
+
+def test_tight_cell_is_the_eval_cell_at_the_tight_budget(monkeypatch, capsys):
+    """--tight: the --eval cell's sweeps at the per-robot budget TIGHT_BUDGET (below the
+    paper's 10 / 3), every figure's name ending in _tight."""
+    scale = _scale_module()
+    budget = scale.TIGHT_BUDGET
+    assert budget < scale.PER_ROBOT_BUDGET
+    search = json.loads((SCRIPT.parents[1] / "docs" / "results" / "scale_tight_search" /
+                         "summary.json").read_text())["summary"]
+    # the search it was read from: nbv_team with global communication, 64 robots in the
+    # 16x world, finds 50-80% of the windows at that budget
+    (row,) = [r for r in search if math.isclose(r["budget"], 64 * budget)]
+    assert (row["planner"], row["n_robots"], row["world_size"]) == ("nbv_team", 64, 125)
+    assert 50 <= row["mean"] <= 80
+    sweeps = {}
+    found = {("policy", "relay", 64): [60.0, 62.0], ("policy", "single_hop", 64): [55.0, 57.0],
+             ("nbv_team", "global", 64): [70.0, 72.0], ("nbv", "global", 64): [66.0, 68.0]}
+
+    def fake(policy, settings):
+        sweeps.update(settings)
+        return {(*key, 0.12): SimpleNamespace(discovered=np.asarray(v))
+                for key, v in found.items()}
+
+    monkeypatch.setattr(scale, "sweep_exchanges", fake)
+    scale.evaluate_cell(Path("unused"), 64, 125, 0.12, 2, [], budget=budget, tag="_tight")
+    assert all(f"eval.budgets=[{budget:.8g}]" in settings for settings in sweeps.values())
+    lines = {r["name"]: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    ratio = lines["scale.relay_vs_best_global_16x_tight"]
+    assert ratio["value"] == pytest.approx(61.0 / 71.0, abs=1e-4)
+    assert ratio["best_global"] == "nbv_team"
+    assert lines["scale.pct.nbv.global_tight"]["value"] == pytest.approx(67.0)
+    assert "scale.relay_vs_best_global_p_tight" in lines
+    assert not any(name.startswith("scale.pct.") and not name.endswith("_tight")
+                   for name in lines)
+
+
+def test_tight_without_eval_is_an_error():
+    done = subprocess.run([sys.executable, str(SCRIPT), "--tight"], capture_output=True,
+                          text=True, timeout=120)
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip() == ("error: --tight: allowed only with --eval (it sets the "
+                                   "--eval cell's budget)")

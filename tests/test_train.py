@@ -261,20 +261,27 @@ def _start_runner(cfg, trainer, dyn) -> ppo.Runner:
 
 # The search compiles into the rollout for one to two minutes: make test keeps the search
 # (test_lookahead.py) and the loss on stored choices (test_kickstarting_...).
-@pytest.mark.slow
-def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
-    """ppo.teacher = nbv_ahead: the transitions carry that planner's choices, feasible on
-    the observations, and some differ from the one-step NBV choice; with the weight at 0
-    the rollout skips the planner and stores NO_CHOICE."""
-    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher=nbv_ahead",
-                                             "eval.nbv_ahead_branches=4"])
+def _taught_rollout(overrides):
+    """run(weight) -> the transitions of one rollout of the smoke config with `overrides`
+    from an untrained policy, the teacher's weight `weight`; and the config."""
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "eval.nbv_ahead_branches=4",
+                                             "eval.nbv_targets_branches=4", *overrides])
     trainer = trainmod.Trainer.build(cfg)
     dyn = DynamicParams.from_config(cfg)
     params = trainer.init().params
     runner = _start_runner(cfg, trainer, dyn)
-    run = jax.jit(lambda weight: ppo.rollout(
+    return jax.jit(lambda weight: ppo.rollout(
         jax.random.PRNGKey(1), runner, params, trainer.network, cfg, trainer.env_params, dyn,
-        teacher=ppo.Teacher(weight, cfg.ppo.teacher_facade))[1])
+        teacher=ppo.Teacher(weight, cfg.ppo.teacher_facade))[1]), cfg
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("teacher", ["nbv_ahead", "oracle_rate"])
+def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teacher):
+    """ppo.teacher = nbv_ahead (or the privileged oracle_rate): the transitions carry that
+    planner's choices, feasible on the observations, and some differ from the one-step NBV
+    choice; with the weight at 0 the rollout skips the planner and stores NO_CHOICE."""
+    run, cfg = _taught_rollout([f"ppo.teacher={teacher}"])
     taught = jax.tree.map(np.asarray, run(jnp.float32(1.0)))
     feasible = np.take_along_axis(taught.obs.mask, taught.teacher[..., None], -1)[..., 0]
     assert taught.teacher.dtype == np.int32 and np.all(feasible | ~taught.active)
@@ -282,6 +289,17 @@ def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts():
                                taught.obs.mask)
     assert np.any((nbv != taught.teacher) & taught.active)
     assert np.all(np.asarray(run(jnp.float32(0.0)).teacher) == ppo.NO_CHOICE)
+
+
+@pytest.mark.slow
+def test_the_belief_teacher_with_an_unshakable_prior_teaches_as_nbv_ahead():
+    # A prior no window moves puts every building at the prior rate: nbv_targets's search
+    # is nbv_ahead's (tests/test_targets.py), so the rollouts store the same choices.
+    ahead = _taught_rollout(["ppo.teacher=nbv_ahead"])[0](jnp.float32(1.0))
+    targets = _taught_rollout(["ppo.teacher=nbv_targets", "eval.nbv_targets_strength=1e9"])[0](
+        jnp.float32(1.0))
+    assert np.any(np.asarray(ahead.active))
+    np.testing.assert_array_equal(np.asarray(ahead.teacher), np.asarray(targets.teacher))
 
 
 def test_gae_matches_a_hand_computed_example():

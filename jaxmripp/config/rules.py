@@ -51,9 +51,9 @@ _NONNEG = _range(0)
 _UNIT = _range(0, 1)
 METRIC_SINKS = ("jsonl", "tensorboard", "wandb")  # where train.log may send metrics
 PLANNERS = ("policy", "random", "greedy", "coordinated", "nbv", "nbv_team", "nbv_ahead",
-            "nbv_targets", "mcts", "rig", "oracle", "oracle_ahead", "oracle_rate")
+            "nbv_targets", "mcts", "rig", "oracle", "oracle_ahead", "oracle_rate", "oracle_city")
 # Upper references: they read the truth, so tables never count them as baselines.
-REFERENCES = ("oracle", "oracle_ahead", "oracle_rate")
+REFERENCES = ("oracle", "oracle_ahead", "oracle_rate", "oracle_city")
 
 RULES: dict[str, tuple] = {
     "world.size": _range(10, 256),
@@ -116,7 +116,7 @@ RULES: dict[str, tuple] = {
     "ppo.max_grad_norm": _POSITIVE,
     "ppo.teacher_coef": _NONNEG,
     "ppo.teacher_updates": _NONNEG,
-    "ppo.teacher": _choice("nbv", "nbv_ahead"),
+    "ppo.teacher": _choice("nbv", "nbv_ahead", "nbv_targets", "oracle_rate"),
     "ppo.teacher_facade": _NONNEG,
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
@@ -209,24 +209,24 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
     if cfg.ppo.teacher_coef > 0 and not cfg.policy.view_features:
         problems.append(("ppo.teacher_coef", cfg.ppo.teacher_coef,
                          "0 while policy.view_features is false (the teacher reads them)"))
-    uses_ahead = "nbv_ahead" in cfg.eval.planners or (cfg.ppo.teacher == "nbv_ahead"
-                                                      and cfg.ppo.teacher_coef > 0)
-    if uses_ahead and cfg.eval.nbv_ahead_branches > cfg.candidates.count:
+    # the planners a sweep runs and the one that teaches
+    runs = set(cfg.eval.planners) | ({cfg.ppo.teacher} if cfg.ppo.teacher_coef > 0 else set())
+    if "nbv_ahead" in runs and cfg.eval.nbv_ahead_branches > cfg.candidates.count:
         problems.append(("eval.nbv_ahead_branches", cfg.eval.nbv_ahead_branches,
                          f"at most the candidate count 4 x candidates.positions = "
                          f"{cfg.candidates.count}"))
-    for name in ("nbv_targets", "oracle_rate", "oracle_ahead"):
+    for name in ("nbv_targets", "oracle_rate", "oracle_city", "oracle_ahead"):
         key = "oracle_ahead_branches" if name == "oracle_ahead" else "nbv_targets_branches"
         branches = getattr(cfg.eval, key)
-        if name in cfg.eval.planners and branches > cfg.candidates.count:
+        if name in runs and branches > cfg.candidates.count:
             problems.append((f"eval.{key}", branches, f"at most the candidate count 4 x "
                              f"candidates.positions = {cfg.candidates.count}"))
-    believes = cfg.policy.belief_features or any(
-        p in cfg.eval.planners for p in ("nbv_targets", "oracle_rate"))
+    believes = cfg.policy.belief_features or bool(runs & {"nbv_targets", "oracle_rate",
+                                                          "oracle_city"})
     if believes and cfg.world.clearance < 1:
         problems.append(("world.clearance", cfg.world.clearance,
                          "at least 1 with the target belief (policy.belief_features, "
-                         "nbv_targets, oracle_rate: buildings must not touch)"))
+                         "nbv_targets, oracle_rate, oracle_city: buildings must not touch)"))
     if cfg.policy.ahead_branches > cfg.candidates.count:
         problems.append(("policy.ahead_branches", cfg.policy.ahead_branches,
                          f"0 (no lookahead input) to the candidate count 4 x "

@@ -165,8 +165,9 @@ class PPOConfig:
     # the observation each robot decided on
     teacher_coef: float = 0.0
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
-    # whose choices: nbv (the score on the observation, as above) or nbv_ahead (that
-    # baseline's choices with the eval.nbv_ahead_* settings, computed in the rollouts)
+    # whose choices: nbv (the score on the observation, as above), nbv_ahead or
+    # nbv_targets (those baselines' choices with their eval.* settings, computed in the
+    # rollouts) or oracle_rate (nbv_targets with the true rates: a privileged teacher)
     teacher: str = "nbv"
     # the weight of unknown facade voxels in the teacher's score; nbv_team's tuned weight
     # by default (a training setting, chosen by the trained policies on training layouts)

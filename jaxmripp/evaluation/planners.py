@@ -71,6 +71,10 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
         return baselines.oracle_rate_planner(
             params, get("nbv_targets_facade"), get("nbv_targets_discount"),
             get("nbv_targets_branches"), get("nbv_ahead_flights"))
+    if name == "oracle_city":
+        return baselines.oracle_city_planner(
+            params, get("nbv_targets_facade"), get("nbv_targets_discount"),
+            get("nbv_targets_branches"), get("nbv_ahead_flights"))
     if name == "mcts":
         from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
 
@@ -84,7 +88,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
                            kappa=get("rig_kappa"))
     raise ValueError(f"unknown planner {name!r}; known: random, greedy, coordinated, nbv, "
                      "nbv_team, nbv_ahead, nbv_targets, mcts, rig, oracle, oracle_ahead, "
-                     "oracle_rate (and policy, which needs --policy)")
+                     "oracle_rate, oracle_city (and policy, which needs --policy)")
 
 
 # Defaults of the EvalConfig fields read beyond the base ones; used while

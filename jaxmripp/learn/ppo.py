@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import env as envmod, lookahead, privileged
+from jaxmripp.sim import belief, env as envmod, lookahead, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -210,14 +210,25 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
 
 def _teacher(cfg: Config, params: EnvParams):
     """choose(key, obs, state, dyn) -> the team's choices (N,) that the rollout stores for
-    the loss (ppo.teacher = nbv_ahead), or None where the loss derives the choice from the
-    observation itself (nbv)."""
+    the loss (ppo.teacher = nbv_ahead, nbv_targets or oracle_rate, with the eval settings of
+    those planners and the facade weight ppo.teacher_facade), or None where the loss
+    derives the choice from the observation itself (nbv)."""
     if cfg.ppo.teacher_coef == 0 or cfg.ppo.teacher == "nbv":
         return None
     e = cfg.eval
+    if cfg.ppo.teacher == "nbv_ahead":
+        return lambda key, obs, state, dyn: lookahead.choose_in_turn(
+            key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_ahead_discount,
+            e.nbv_ahead_branches, e.nbv_ahead_flights)
+    # The target belief's rates (nbv_targets) or the truth's (oracle_rate: a privileged
+    # teacher that knows how many windows each building has left, never where).
+    rates = ((lambda state: belief.team_rates(state, e.nbv_targets_strength, params.sensor,
+                                              params.world))
+             if cfg.ppo.teacher == "nbv_targets" else
+             (lambda state: belief.true_rates(state, params.sensor, params.world)))
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
-        key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_ahead_discount,
-        e.nbv_ahead_branches, e.nbv_ahead_flights)
+        key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_targets_discount,
+        e.nbv_targets_branches, e.nbv_ahead_flights, rates=rates(state))
 
 
 def gae(transitions: Transition, last_value, discount: float, lam: float):

@@ -155,14 +155,30 @@ def team_rates(state: EnvState, strength, sensor: SensorConfig, world: WorldConf
         sensor)
 
 
+def _lowest_neighbour(height: jax.Array) -> jax.Array:
+    """(G, G) the lowest of each column's four horizontal neighbours (outside the grid: 0)."""
+    padded = jnp.pad(height, 1)
+    return jnp.minimum(jnp.minimum(padded[:-2, 1:-1], padded[2:, 1:-1]),
+                       jnp.minimum(padded[1:-1, :-2], padded[1:-1, 2:]))
+
+
 def surface(height: jax.Array) -> jax.Array:
     """(G, G) int32 the building voxels of each column with a face open to the air: the
     part of the column above its lowest horizontal neighbour (outside the grid: 0), and
     at least its roof voxel."""
-    padded = jnp.pad(height, 1)
-    lowest = jnp.minimum(jnp.minimum(padded[:-2, 1:-1], padded[2:, 1:-1]),
-                         jnp.minimum(padded[1:-1, :-2], padded[1:-1, 2:]))
-    return jnp.where(height > 0, jnp.maximum(height - lowest, 1), 0)
+    return jnp.where(height > 0, jnp.maximum(height - _lowest_neighbour(height), 1), 0)
+
+
+def window_voxels(height: jax.Array, world: WorldConfig) -> jax.Array:
+    """(G, G, G) bool the building voxels that can hold a window: with facade windows
+    (`world.target_placement`) those with a side face open to the air, i.e. above their
+    column's lowest horizontal neighbour (the roofs of `surface` left out); with windows
+    inside footprints every building voxel."""
+    z = jnp.arange(height.shape[0])
+    solid = z < height[..., None]
+    if world.target_placement != "facade":
+        return solid
+    return solid & (z >= _lowest_neighbour(height)[..., None])
 
 
 def true_rates(state: EnvState, sensor: SensorConfig, world: WorldConfig) -> jax.Array:

@@ -12,6 +12,9 @@ could compute.
   neither discovered nor claimed nor (for b) seen from a, b drawn around a as the
   environment draws candidates on the robot's map with a's view counted as seen. Robots
   hear the claims of the robots in radio range only (with relay, of their component).
+- `city_known`: the state as a planner that knows the city sees it (the `oracle_city`
+  reference): every voxel is known except the voxels that can hold windows
+  (`belief.window_voxels`) a robot has not observed, and every building's roof is known.
 """
 
 from __future__ import annotations
@@ -19,7 +22,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import comms, lookahead, sensing, view
+from jaxmripp.sim import belief, comms, lookahead, maps, sensing, view
+from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
 from jaxmripp.spec import layout
@@ -95,3 +99,18 @@ def choose_ahead(key, mask: jax.Array, state: EnvState, dyn: DynamicParams,
     claimed = jnp.zeros((mask.shape[0], state.discovered.shape[0]), bool)
     _, actions = jax.lax.scan(choose, claimed, jnp.arange(mask.shape[0]))
     return actions
+
+
+def city_known(state: EnvState, params: EnvParams) -> EnvState:
+    """`state` with every robot's map (team map and building tops) holding the true city
+    except the voxels that can hold windows (`belief.window_voxels`) the robot has not
+    observed: what a robot would plan on if it knew the geometry but not the windows. The
+    view gain then counts only those voxels, and occlusion is the truth's. One
+    environment: callers vmap."""
+    n, height = state.position.shape[0], state.world.height
+    building = maps.buildings(state.team_map)
+    truth = jnp.where(building, jnp.int8(OCCUPIED), jnp.int8(FREE))
+    unseen = belief.window_voxels(height, params.world) & (state.occupancy == UNKNOWN)
+    planning = jnp.where(unseen, jnp.int8(UNKNOWN), truth)
+    tops = jnp.broadcast_to(height.astype(jnp.int8), (n,) + height.shape)
+    return state.replace(team_map=maps.pack(planning, building), building_top=tops)
