@@ -215,7 +215,7 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("eval.nbv_ahead_branches", cfg.eval.nbv_ahead_branches,
                          f"at most the candidate count 4 x candidates.positions = "
                          f"{cfg.candidates.count}"))
-    for name in ("nbv_targets", "oracle_rate", "oracle_city", "oracle_ahead"):
+    for name in ("nbv_targets", "oracle_rate", "oracle_ahead"):
         key = "oracle_ahead_branches" if name == "oracle_ahead" else "nbv_targets_branches"
         branches = getattr(cfg.eval, key)
         if name in runs and branches > cfg.candidates.count:

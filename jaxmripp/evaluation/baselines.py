@@ -241,18 +241,15 @@ def oracle_rate_planner(params, facade_weight=2.0, discount=3.0, branches: int =
                                                                    params.world))
 
 
-def oracle_city_planner(params, facade_weight=2.0, discount=3.0, branches: int = 32,
-                        flights: int = 2, name: str = "oracle_city") -> Planner:
-    """`oracle_rate` on the true city (`jaxmripp.sim.oracle.city_known`): it knows every
-    building's shape and how many windows are left on it, not where on it. An upper
-    reference of what a planner that does not see windows before looking could reach,
-    never a baseline."""
-    lookahead.check(params, branches, flights)
 
-    def act(key, memory, obs, state, dyn):
+def oracle_city_planner(params, name: str = "oracle_city") -> Planner:
+    """The expected-window oracle per unit of cost (`jaxmripp.sim.oracle.choose_city_in_turn`):
+    robots in turn, each knowing the city's true geometry and how many windows every
+    building has left, not where on it. An upper reference of what a one-flight planner
+    that does not see windows before looking could reach, never a baseline."""
+    def act(key, memory, obs, state, dyn=None):
         rates = belief.true_rates(state, params.sensor, params.world)
-        return memory, lookahead.choose_in_turn(
-            key, obs, oracle.city_known(state, params), dyn, params, facade_weight, discount,
-            branches, flights, rates=rates)
+        return memory, oracle.choose_city_in_turn(obs.mask, state, params,
+                                                  _view_tie(key, obs), rates)
 
     return Planner(name, no_memory, act)

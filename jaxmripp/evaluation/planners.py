@@ -72,9 +72,7 @@ def baseline_planner(name: str, params: EnvParams, eval_cfg) -> Planner:
             params, get("nbv_targets_facade"), get("nbv_targets_discount"),
             get("nbv_targets_branches"), get("nbv_ahead_flights"))
     if name == "oracle_city":
-        return baselines.oracle_city_planner(
-            params, get("nbv_targets_facade"), get("nbv_targets_discount"),
-            get("nbv_targets_branches"), get("nbv_ahead_flights"))
+        return baselines.oracle_city_planner(params)
     if name == "mcts":
         from jaxmripp.evaluation.tree_search import tree_search_planner  # noqa: PLC0415 (mctx)
 

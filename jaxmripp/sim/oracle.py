@@ -12,9 +12,10 @@ could compute.
   neither discovered nor claimed nor (for b) seen from a, b drawn around a as the
   environment draws candidates on the robot's map with a's view counted as seen. Robots
   hear the claims of the robots in radio range only (with relay, of their component).
-- `city_known`: the state as a planner that knows the city sees it (the `oracle_city`
-  reference): every voxel is known except the voxels that can hold windows
-  (`belief.window_voxels`) a robot has not observed, and every building's roof is known.
+- `choose_city_in_turn`: one flight, per cost, scored by the windows a pose is expected to
+  reveal when the city is known but not where its windows are: each building's true
+  remaining windows spread over its unseen voxels that can hold one (the `oracle_city`
+  reference).
 """
 
 from __future__ import annotations
@@ -22,11 +23,11 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxmripp.sim import belief, comms, lookahead, maps, sensing, view
-from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
+from jaxmripp.sim import belief, comms, lookahead, sensing, view
+from jaxmripp.sim.geometry import UNKNOWN
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
-from jaxmripp.spec import layout
+from jaxmripp.spec import belief as belief_spec, layout
 
 
 def _seen_from(state: EnvState, params: EnvParams):
@@ -101,16 +102,38 @@ def choose_ahead(key, mask: jax.Array, state: EnvState, dyn: DynamicParams,
     return actions
 
 
-def city_known(state: EnvState, params: EnvParams) -> EnvState:
-    """`state` with every robot's map (team map and building tops) holding the true city
-    except the voxels that can hold windows (`belief.window_voxels`) the robot has not
-    observed: what a robot would plan on if it knew the geometry but not the windows. The
-    view gain then counts only those voxels, and occlusion is the truth's. One
-    environment: callers vmap."""
-    n, height = state.position.shape[0], state.world.height
-    building = maps.buildings(state.team_map)
-    truth = jnp.where(building, jnp.int8(OCCUPIED), jnp.int8(FREE))
-    unseen = belief.window_voxels(height, params.world) & (state.occupancy == UNKNOWN)
-    planning = jnp.where(unseen, jnp.int8(UNKNOWN), truth)
-    tops = jnp.broadcast_to(height.astype(jnp.int8), (n,) + height.shape)
-    return state.replace(team_map=maps.pack(planning, building), building_top=tops)
+
+def choose_city_in_turn(mask: jax.Array, state: EnvState, params: EnvParams,
+                        tie: jax.Array, rates: jax.Array) -> jax.Array:
+    """The team's choices (N,) int32 by the expected new windows per unit of flight cost of
+    a planner that knows the city but not where its windows are. mask, tie as
+    `choose_in_turn`'s; rates (N, G, G) int32 each robot's quantised facade rates of the
+    truth (`belief.true_rates`: a building's windows the robot has not found over the
+    surface it has not seen, relative to the prior m). Robot i (index order) casts the
+    sensor on the true world from each of its candidates; a pose's expected new windows
+    are, over the voxels it would observe that can hold a window (`belief.window_voxels`),
+    that the robot's map does not hold and that no robot j < i will observe from the pose
+    it chose this step, the sum of their building's rate times m. One environment:
+    callers vmap."""
+    c = state.candidates
+    n, cells = mask.shape[0], params.size**3
+    cast = jax.vmap(lambda p, h: sensing.cast(state.world, p, h, params.sensor,
+                                              params.size).voxels)
+    slots = belief.window_voxels(state.world.height, params.world).reshape(-1)
+    unknown = state.occupancy.reshape(n, cells) == UNKNOWN
+    per_slot = rates.reshape(n, -1).astype(jnp.float32) * (belief.prior(params.world)
+                                                          / belief_spec.RATE_SCALE)
+    shell = params.candidates.shell[1]
+
+    def choose(covered, i):
+        observed = cast(c.position[i], c.heading[i])  # (L, V) flat voxels, cells where none
+        voxel = jnp.minimum(observed, cells - 1)
+        fresh = (observed < cells) & slots[voxel] & unknown[i][voxel] & ~covered[voxel]
+        expected = jnp.sum(jnp.where(fresh, per_slot[i][voxel // params.size], 0.0), axis=-1)
+        a = layout.masked_argmax(view.per_cost(expected, c.cost[i], shell) + tie[i],
+                                 mask[i], jnp)
+        chosen = jnp.where(jnp.any(mask[i]), observed[a], cells)
+        return covered.at[chosen].set(True, mode="drop"), a
+
+    _, actions = jax.lax.scan(choose, jnp.zeros(cells, bool), jnp.arange(n))
+    return actions
