@@ -102,7 +102,6 @@ def choose_ahead(key, mask: jax.Array, state: EnvState, dyn: DynamicParams,
     return actions
 
 
-
 def choose_city_in_turn(mask: jax.Array, state: EnvState, params: EnvParams,
                         tie: jax.Array, rates: jax.Array) -> jax.Array:
     """The team's choices (N,) int32 by the expected new windows per unit of flight cost of
