@@ -241,7 +241,6 @@ def oracle_rate_planner(params, facade_weight=2.0, discount=3.0, branches: int =
                                                                    params.world))
 
 
-
 def oracle_city_planner(params, name: str = "oracle_city") -> Planner:
     """The expected-window oracle per unit of cost (`jaxmripp.sim.oracle.choose_city_in_turn`):
     robots in turn, each knowing the city's true geometry and how many windows every
