@@ -226,8 +226,8 @@ def nbv_targets_planner(params, strength=3.0, facade_weight=2.0, discount=3.0,
     """`nbv_ahead` with each facade sample weighed by its building's posterior window rate
     from what the robot's map holds (`jaxmripp.spec.belief`, prior strength `strength`)."""
     return nbv_ahead_planner(params, facade_weight, discount, branches, flights, name,
-                             rates=lambda state: belief.team_rates(state, strength,
-                                                                   params.sensor, params.world))
+                             rates=belief.rates_for("belief", strength, params.sensor,
+                                                    params.world))
 
 
 def oracle_rate_planner(params, facade_weight=2.0, discount=3.0, branches: int = 32,
@@ -237,8 +237,8 @@ def oracle_rate_planner(params, facade_weight=2.0, discount=3.0, branches: int =
     how many windows are left on a building, not where on it: an upper reference of what
     a better belief can be worth, never a baseline."""
     return nbv_ahead_planner(params, facade_weight, discount, branches, flights, name,
-                             rates=lambda state: belief.true_rates(state, params.sensor,
-                                                                   params.world))
+                             rates=belief.rates_for("truth", None, params.sensor,
+                                                    params.world))
 
 
 def oracle_city_planner(params, name: str = "oracle_city") -> Planner:

@@ -222,10 +222,8 @@ def _teacher(cfg: Config, params: EnvParams):
             e.nbv_ahead_branches, e.nbv_ahead_flights)
     # The target belief's rates (nbv_targets) or the truth's (oracle_rate: a privileged
     # teacher that knows how many windows each building has left, never where).
-    rates = ((lambda state: belief.team_rates(state, e.nbv_targets_strength, params.sensor,
-                                              params.world))
-             if cfg.ppo.teacher == "nbv_targets" else
-             (lambda state: belief.true_rates(state, params.sensor, params.world)))
+    rates = belief.rates_for("belief" if cfg.ppo.teacher == "nbv_targets" else "truth",
+                             e.nbv_targets_strength, params.sensor, params.world)
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
         key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_targets_discount,
         e.nbv_targets_branches, e.nbv_ahead_flights, rates=rates(state))

@@ -204,3 +204,14 @@ def true_rates(state: EnvState, sensor: SensorConfig, world: WorldConfig) -> jax
                                        flat, size), sensor)
 
     return jax.vmap(one)(known, known_facade(state.team_map, flat, n))
+
+
+def rates_for(source: str, strength, sensor: SensorConfig, world: WorldConfig):
+    """state -> (N, G, G) the facade rates a belief-weighted lookahead weighs by: the
+    robot's own posterior (`source` = "belief", `team_rates` at prior strength `strength`)
+    or the truth's (`source` = "truth", `true_rates`: privileged, references only)."""
+    if source == "belief":
+        return lambda state: team_rates(state, strength, sensor, world)
+    if source == "truth":
+        return lambda state: true_rates(state, sensor, world)
+    raise ValueError(f"rates source {source!r}: allowed belief, truth")
