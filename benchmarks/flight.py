@@ -7,9 +7,11 @@ view) on simulated quadrotors, over W cities (`jaxmripp.flight`).
 Every planner flies the same cities (seeds first_seed .. first_seed + W - 1, random
 layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export). Prints
 JSON lines: flight.<planner>_pct (mean, with std and 95% half-width),
-flight.policy_vs_random, flight.crashes (all planners, all missions), flight.decision_ms
-(median per robot decision, policy), flight.sense_ms (median depth image -> map update),
-flight.sim_realtime_factor (simulated seconds per wall second, all missions),
+flight.policy_vs_random, flight.policy_vs_nbv (with nbv flown; flight.policy_vs_nbv_p the
+paired t-test over the cities), flight.crashes (all planners, all missions),
+flight.decision_ms (median per robot decision, policy), flight.sense_ms (median depth
+image -> map update), flight.sim_realtime_factor (simulated seconds per wall second, all
+missions),
 flight.max_speed, flight.track_error_m (farthest from a line of flight),
 flight.late_arrivals, flight.false_free_voxels (building voxels some map held FREE; 0
 by the depth rule), flight.refused_messages (the drones fly a signed radio, a team key
@@ -30,7 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 import numpy as np  # noqa: E402
 
-from common import ArgumentParser, add_quiet, emit, entry_point  # noqa: E402
+from common import ArgumentParser, add_quiet, emit, emit_p, entry_point  # noqa: E402
 from jaxmripp.flight.team import DEFAULT_FOOTPRINTS  # noqa: E402
 
 
@@ -80,6 +82,15 @@ def main(argv=None) -> None:
     policy = np.mean([r.pct for r in results["policy"]])
     random = np.mean([r.pct for r in results["random"]])
     emit("flight.policy_vs_random", policy / random, "ratio")
+    if "nbv" in results:
+        from jaxmripp.evaluation.stats import paired_by_world  # noqa: PLC0415
+
+        # One mission per city and planner: the cities are the pairs.
+        test = paired_by_world([r.pct for r in results["policy"]],
+                               [r.pct for r in results["nbv"]], args.worlds)
+        emit("flight.policy_vs_nbv", policy / np.mean([r.pct for r in results["nbv"]]),
+             "ratio", diff=round(test["diff"], 3))
+        emit_p("flight.policy_vs_nbv_p", test["p"])
     emit("flight.crashes", sum(len(r.crashes) for r in every), "count",
          missions=len(every))
     emit("flight.decision_ms", np.median([t for r in results["policy"] for t in r.decision_ms]),

@@ -32,12 +32,16 @@ box_labels = jax.jit(belief.box_labels, static_argnums=(2, 3))
 
 @functools.partial(jax.jit, static_argnums=(4, 5))
 def team_rates(world, team_map, top, strength, sensor, true=False):
-    """`belief.team_rates` (or `true_rates`) of the fields the belief reads."""
+    """`belief.team_rates` (or `true_rates`) of the fields the belief reads, as the belief
+    planners and teachers get them (`belief.rates_for`)."""
     state = SimpleNamespace(world=world, team_map=team_map, building_top=top,
                             position=jnp.zeros((top.shape[0], 3)))
-    if true:
-        return belief.true_rates(state, sensor, WORLD)
-    return belief.team_rates(state, strength, sensor, WORLD)
+    return belief.rates_for("truth" if true else "belief", strength, sensor, WORLD)(state)
+
+
+def test_a_rates_source_other_than_belief_or_truth_is_refused():
+    with pytest.raises(ValueError, match="allowed: belief, truth"):
+        belief.rates_for("oracle", 3.0, SENSOR, WORLD)
 
 
 # ---------------------------------------------------------------------------------------

@@ -214,4 +214,4 @@ def rates_for(source: str, strength, sensor: SensorConfig, world: WorldConfig):
         return lambda state: team_rates(state, strength, sensor, world)
     if source == "truth":
         return lambda state: true_rates(state, sensor, world)
-    raise ValueError(f"rates source {source!r}: allowed belief, truth")
+    raise ValueError(f"rates source {source!r}; allowed: belief, truth")
