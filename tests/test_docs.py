@@ -106,7 +106,7 @@ def test_the_summary_table_reads_every_planner_and_range():
 def test_the_seed_line_is_the_mean_and_sample_std_of_the_seeds():
     import statistics
 
-    path = "docs/results/recipe_default_seeds/summary.json"
+    path = "docs/results/recipe_ahead_seeds/summary.json"
     summary = json.loads((ROOT / path).read_text())["summary"]
     means = [r["mean"] for r in summary if r["radio_range"] == "inf"]
     line = render.seeds_line(ROOT, path, "inf")[0]
