@@ -11,8 +11,7 @@ flight.policy_vs_random, flight.policy_vs_nbv (with nbv flown; flight.policy_vs_
 paired t-test over the cities), flight.crashes (all planners, all missions),
 flight.decision_ms (median per robot decision, policy), flight.sense_ms (median depth
 image -> map update), flight.sim_realtime_factor (simulated seconds per wall second, all
-missions),
-flight.max_speed, flight.track_error_m (farthest from a line of flight),
+missions), flight.max_speed, flight.track_error_m (farthest from a line of flight),
 flight.late_arrivals, flight.false_free_voxels (building voxels some map held FREE; 0
 by the depth rule), flight.refused_messages (the drones fly a signed radio, a team key
 from each city's seed: none refused in an honest team) and flight.map_conflicts (voxels
