@@ -50,6 +50,7 @@ demo: $(STAMP)
 	XLA_FLAGS="$$XLA_FLAGS $$flags" $(BIN)/jaxmripp eval --config protocol_table1 \
 	  --policy policy=pretrained/default_fast --out $(DEMO_OUT) --no-timing \
 	  "eval.planners=[policy,nbv_team,random]" "eval.radio_ranges=[.inf]" eval.worlds=5 \
+	  sensor.gain_facade=nearby \
 	  eval.trials=2 "eval.pairs=[policy:nbv_team,policy:random]" && \
 	echo "the same policy flown by the NumPy runtime (jaxmripp demo), world seed 0:" && \
 	$(BIN)/jaxmripp demo --export pretrained/default_fast --quiet && \

@@ -22,7 +22,7 @@ def brute_tops(grid: np.ndarray) -> np.ndarray:
 def visible_samples(grid, top, position, heading: int, sensor: SensorConfig):
     """Every ray sample of one pose the camera reaches, in order: (x, y, z, weight, near),
     near the highest top among the column and (with the "nearby" facade rule) its four
-    neighbours; a ray stops at the grid's edge and, with occlusion, at an OCCUPIED voxel."""
+    neighbours (with "around" its eight); a ray stops at the grid's edge and, with occlusion, at an OCCUPIED voxel."""
     size = grid.shape[0]
     offsets, weights = spec.gain_table(sensor.fov_deg, sensor.range, size)
     c = np.clip(np.floor(np.float32(position) * np.float32(size)), 0, size - 1).astype(int)
@@ -36,6 +36,8 @@ def visible_samples(grid, top, position, heading: int, sensor: SensorConfig):
             columns = ((x, y), (x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1))
             if sensor.gain_facade == "column":
                 columns = columns[:1]
+            elif sensor.gain_facade == "around":
+                columns += ((x - 1, y - 1), (x - 1, y + 1), (x + 1, y - 1), (x + 1, y + 1))
             near = max(top[i, j] for i, j in columns if 0 <= i < size and 0 <= j < size)
             yield x, y, z, w, near
 

@@ -94,8 +94,11 @@ def reference_rates(grid, top, target_voxel, target_valid, strength, prior, faca
     if facade_mode == "column":
         return q
     padded = np.pad(q, 1)
-    return np.max([padded[1:-1, 1:-1], padded[:-2, 1:-1], padded[2:, 1:-1],
-                   padded[1:-1, :-2], padded[1:-1, 2:]], axis=0)
+    steps = [(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)]
+    if facade_mode == "around":
+        steps += [(-1, -1), (-1, 1), (1, -1), (1, 1)]
+    return np.max([padded[1 + dx:1 + dx + size, 1 + dy:1 + dy + size] for dx, dy in steps],
+                  axis=0)
 
 
 @functools.partial(jax.jit, static_argnums=(1, 2))
@@ -170,7 +173,8 @@ def test_two_walls_of_one_building_are_two_buildings_until_a_column_joins_them()
 
 @pytest.mark.parametrize("strength", [1.0, 3.0])
 def test_rates_equal_the_reference_robot_by_robot(scenes, strength):
-    sensors = [SENSOR, dataclasses.replace(SENSOR, gain_facade="column")]
+    sensors = [SENSOR, dataclasses.replace(SENSOR, gain_facade="column"),
+               dataclasses.replace(SENSOR, gain_facade="around")]
     for (state, grids, tops), sensor in zip(scenes, sensors * 2):
         rates = np.asarray(team_rates(state.world, state.team_map, state.building_top,
                                       strength, sensor))

@@ -94,7 +94,7 @@ def test_paper_preset_inherits_and_changes_the_reference_bits():
         ("world.size=6", "world.size: got 6"),
         ("candidates.positions=0", "candidates.positions: got 0"),
         ("world.layout=spiral", "allowed: one of grid, random"),
-        ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, column"),
+        ("sensor.gain_facade=roof", "sensor.gain_facade: got roof; allowed: one of nearby, around, column"),
         ("radio.map_reach=team", "radio.map_reach: got team, a removed setting; allowed: "
                                  "radio (the one built in) or leaving it out"),
         ("world.size=12.5", "allowed: an integer"),

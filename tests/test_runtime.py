@@ -190,7 +190,7 @@ def test_gain_model_travels_in_the_header_and_older_headers_keep_the_default():
     assert RuntimeSpec.from_header(header).gain == spec_of().gain == view.GainModel(
         CFG.sensor.fov_deg, CFG.sensor.range, True, "nearby")
     header["config"]["sensor"]["gain_facade"] = "roof"
-    with pytest.raises(WeightsFormatError, match="gain_facade 'roof' is not one of nearby, column"):
+    with pytest.raises(WeightsFormatError, match="gain_facade 'roof' is not one of nearby, around, column"):
         RuntimeSpec.from_header(header)
 
 

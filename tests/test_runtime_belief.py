@@ -102,7 +102,7 @@ def test_posterior_rates_equal_the_jax_belief_and_the_written_rule(scenes, stren
     assert checked >= 3  # buildings with known windows, on most maps
 
 
-@pytest.mark.parametrize("facade", ["nearby", "column"])
+@pytest.mark.parametrize("facade", ["nearby", "around", "column"])
 def test_facade_rates_and_weighted_gain_equal_the_jax_ones(scenes, facade):
     sensor = dataclasses.replace(SENSOR, gain_facade=facade)
     model = view.GainModel(sensor.fov_deg, sensor.range, sensor.gain_occlusion, facade)

@@ -88,8 +88,9 @@ def test_view_gain_equals_the_jax_one_and_the_written_rule():
     gain = jax.jit(jax_view.view_gain, static_argnums=(3, 4))
     peers = jax.jit(jax_view.peer_distance, static_argnums=3)
     costs = jax.jit(jax_view.per_cost, static_argnums=2)
-    for trial in range(8):
-        sensor = SEE_THROUGH if trial >= 6 else SENSOR
+    around = SensorConfig(gain_facade="around")
+    for trial in range(10):
+        sensor = SEE_THROUGH if trial in (6, 7) else around if trial >= 8 else SENSOR
         grid = random_map(rng, p_occupied=0.05 * (trial % 3 + trial // 6),
                           p_unknown=0.3 + 0.1 * (trial % 6))
         # Tops from the map, or arbitrary ones (the gain reads whatever tops it is given).

@@ -29,7 +29,8 @@ gain = jax.jit(view.view_gain, static_argnums=(3, 4))
 # the defaults: the reference's frustum and windows inside footprints.
 SEE_THROUGH = dataclasses.replace(SENSOR, gain_occlusion=False, gain_facade="column")
 SENSORS = [SENSOR, dataclasses.replace(SENSOR, gain_occlusion=False),
-           dataclasses.replace(SENSOR, gain_facade="column"), SEE_THROUGH]
+           dataclasses.replace(SENSOR, gain_facade="column"),
+           dataclasses.replace(SENSOR, gain_facade="around"), SEE_THROUGH]
 
 
 def test_table_rays_fan_out_from_the_heading_and_stay_in_the_sensor_view():
@@ -107,7 +108,8 @@ def test_a_sensor_that_sees_through_buildings_gains_behind_a_known_wall():
 
 
 @pytest.mark.parametrize("seed,sensor", [(0, SENSORS[0]), (1, SENSORS[0]), (2, SENSORS[0]),
-                                         (3, SENSORS[1]), (4, SENSORS[2]), (5, SENSORS[3])])
+                                         (3, SENSORS[1]), (4, SENSORS[2]), (5, SENSORS[3]),
+                                         (6, SENSORS[4])])
 def test_gain_equals_the_sample_by_sample_reference_on_random_maps(seed, sensor):
     rng = np.random.default_rng(seed)
     occupancy = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(G, G, G),

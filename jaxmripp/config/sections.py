@@ -62,7 +62,8 @@ class SensorConfig:
     # whether voxels mapped OCCUPIED block the gain's rays (the raycast sensor's occlusion;
     # false: they do not, as for the frustum, which sees through buildings), and which
     # building tops mark unknown voxels as facade: "nearby" (a column's and its four
-    # neighbours': windows on facades) | "column" (its own: windows inside footprints)
+    # neighbours': windows on facades) | "around" (and its corner neighbours': the Table I
+    # protocol's) | "column" (its own: windows inside footprints)
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
 

@@ -246,9 +246,10 @@ def oracle_city_planner(params, name: str = "oracle_city") -> Planner:
     robots in turn, each knowing the city's true geometry and how many windows every
     building has left, not where on it. An upper reference of what a one-flight planner
     that does not see windows before looking could reach, never a baseline."""
+    true_rates = belief.rates_for("truth", None, params.sensor, params.world)
+
     def act(key, memory, obs, state, dyn=None):
-        rates = belief.true_rates(state, params.sensor, params.world)
         return memory, oracle.choose_city_in_turn(obs.mask, state, params,
-                                                  _view_tie(key, obs), rates)
+                                                  _view_tie(key, obs), true_rates(state))
 
     return Planner(name, no_memory, act)

@@ -45,9 +45,21 @@ def nearby_tops(top: np.ndarray) -> np.ndarray:
                               padded[1:-1, :-2], padded[1:-1, 2:]])
 
 
+def around_tops(top: np.ndarray) -> np.ndarray:
+    """(G, G) -> (G, G) int32: the largest top of each column and its eight neighbours."""
+    padded = np.pad(np.asarray(top, np.int32), 1)
+    size = padded.shape[0] - 2
+    return np.maximum.reduce([padded[dx:dx + size, dy:dy + size]
+                              for dx in range(3) for dy in range(3)])
+
+
 def facade_tops(top: np.ndarray, facade: str) -> np.ndarray:
     """(G, G) tops -> (G, G) the tops that mark facade voxels (`GainModel.facade`)."""
-    return nearby_tops(top) if facade == "nearby" else np.asarray(top, np.int32)
+    if facade == "nearby":
+        return nearby_tops(top)
+    if facade == "around":
+        return around_tops(top)
+    return np.asarray(top, np.int32)
 
 
 class GainTable(NamedTuple):

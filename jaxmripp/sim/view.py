@@ -53,20 +53,35 @@ def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
     return raise_tops(top, cast.voxels, cast.values)
 
 
+def _shifted_max(top: jax.Array, axis: int) -> jax.Array:
+    """(G, G) -> (G, G) the largest of each column and its two neighbours along `axis`
+    (outside the grid: 0)."""
+    edge = jnp.zeros_like(jax.lax.slice_in_dim(top, 0, 1, axis=axis))
+    up = jnp.concatenate([jax.lax.slice_in_dim(top, 1, None, axis=axis), edge], axis=axis)
+    down = jnp.concatenate([edge, jax.lax.slice_in_dim(top, 0, -1, axis=axis)], axis=axis)
+    return jnp.maximum(jnp.maximum(up, down), top)
+
+
 def nearby_tops(top: jax.Array) -> jax.Array:
     """(G, G) -> (G, G) the largest top of each column and its four neighbours."""
     # Shifted copies in the tops' own int8: on XLA:CPU an int32 conversion of a batch of
     # tops (E, N, G, G) costs many times what the maxima cost.
-    edge = jnp.zeros_like(top)
-    shifted = [jnp.concatenate([top[1:], edge[:1]]), jnp.concatenate([edge[:1], top[:-1]]),
-               jnp.concatenate([top[:, 1:], edge[:, :1]], axis=1),
-               jnp.concatenate([edge[:, :1], top[:, :-1]], axis=1)]
-    return functools.reduce(jnp.maximum, shifted, top)
+    return jnp.maximum(_shifted_max(top, 0), _shifted_max(top, 1))
+
+
+def around_tops(top: jax.Array) -> jax.Array:
+    """(G, G) -> (G, G) the largest top of each column and its eight neighbours (the 3 x 3
+    maximum, as a maximum along x, then along y)."""
+    return _shifted_max(_shifted_max(top, 0), 1)
 
 
 def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
     """(G, G) tops -> (G, G) the tops that mark facade voxels (`sensor.gain_facade`)."""
-    return nearby_tops(top) if sensor.gain_facade == "nearby" else top
+    if sensor.gain_facade == "nearby":
+        return nearby_tops(top)
+    if sensor.gain_facade == "around":
+        return around_tops(top)
+    return top
 
 
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)

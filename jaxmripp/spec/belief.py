@@ -53,7 +53,7 @@ Rates of columns and of samples
     A known building column's rate is its building's rho; every other column's is 0. A
     column's *facade rate* is the largest rate of the columns that make its facade top
     (`jaxmripp.spec.view`: the column and its four neighbours for `sensor.gain_facade`
-    nearby, the column alone for column). It is quantised, q = min(floor(RATE_SCALE rho +
+    nearby, its eight for around, the column alone for column). It is quantised, q = min(floor(RATE_SCALE rho +
     0.5), RATE_CAP RATE_SCALE), an integer.
 
 Features (the policy's optional BELIEF columns, `jaxmripp.spec.layout`)

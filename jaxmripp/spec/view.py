@@ -12,7 +12,8 @@ Building tops
     Every map keeps, per column (x, y), top = 1 + the highest z mapped OCCUPIED in it, or 0
     when none is. It only grows: written with the map (a voxel observed OCCUPIED raises it)
     and merged by maximum when maps are shared. A column's *nearby top* is the largest top
-    of the column and its four horizontal neighbours inside the grid.
+    of the column and its four horizontal neighbours inside the grid, its *around top* the
+    largest of the column and its eight neighbours (sides and corners).
 
 Samples
     A pose looks along its heading from the centre of its voxel c. The gain rays are a
@@ -35,8 +36,10 @@ Samples
     footprint`). Without occlusion a sample is clear when no earlier sample of its ray
     lies outside the grid: voxels mapped OCCUPIED no longer stop the ray. The facade top
     is the nearby top ("nearby": windows on facades are seen from the columns beside a
-    building) or the column's own top ("column": a known building column's unknown
-    voxels below its roof are where its unseen windows are).
+    building), the around top ("around": also the corners, where the part of a box
+    building not yet seen lies diagonally from its one known column, as from a corner)
+    or the column's own top ("column": a known building column's unknown voxels below
+    its roof are where its unseen windows are).
 
 Features (columns of `jaxmripp.spec.layout.FEATURES`)
     view_unknown          sum of the weights of unknown samples / sum of all weights (of
@@ -65,7 +68,7 @@ COST_FLOOR = 1e-3  # below any real flight or turn cost; guards padding candidat
 PEER_CAP = 5.0  # shell lengths: "nobody near"
 VIEW_FEATURES = ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost")
 INTENT_FEATURES = ("peer_distance",)
-FACADE_TOPS = ("nearby", "column")  # sensor.gain_facade: which tops mark facade voxels
+FACADE_TOPS = ("nearby", "around", "column")  # sensor.gain_facade: which tops mark facade voxels
 
 
 def samples_per_ray(sensor_range: float, size: int) -> int:
