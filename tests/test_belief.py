@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 
 from jaxmripp.config import ConfigError, SensorConfig, WorldConfig, from_dict
-from jaxmripp.sim import belief, env, maps, sensing, view
+from jaxmripp.sim import belief, env, maps, sensing, tops, view
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import belief as spec
@@ -116,7 +116,7 @@ def _maps(key, robots: int, poses: int):
     top = jnp.zeros((robots, size, size), jnp.int8)
     for k in range(poses):
         team = maps.observe(team, casts.voxels[:, k])
-        top = jax.vmap(view.raise_tops)(top, casts.voxels[:, k], casts.values[:, k])
+        top = jax.vmap(tops.raise_tops)(top, casts.voxels[:, k], casts.values[:, k])
     return world, team, top
 
 
@@ -233,7 +233,7 @@ def test_rated_gain_equals_the_sample_by_sample_reference(seed, sensor):
     grid = rng.choice([FREE, UNKNOWN, OCCUPIED], size=(size,) * 3,
                       p=[0.5, 0.45, 0.05]).astype(np.int8)
     top = brute_tops(grid)
-    q = view.facade_tops(jnp.asarray(rng.integers(0, 4 * 256, (size, size)), jnp.int32), sensor)
+    q = tops.facade_tops(jnp.asarray(rng.integers(0, 4 * 256, (size, size)), jnp.int32), sensor)
     position = rng.uniform(0, 1, (4, 3)).astype(np.float32)
     unknown, facade, windows = gain(grid, top, position, sensor, size, q)
     plain = gain(grid, top, position, sensor, size)

@@ -29,6 +29,7 @@ from jaxmripp.runtime import (MessageError, OnboardPlanner, PlannerStateError,
                               ProtocolVersionError, WeightsFormatError, messages, view)
 from jaxmripp.runtime.mapping import FREE, OCCUPIED, UNKNOWN, OccupancyMap
 from jaxmripp.runtime.sharing import MapSharing
+from jaxmripp.sim import tops as jax_tops
 from jaxmripp.sim import view as jax_view
 from jaxmripp.spec import view as spec
 from gain_reference import brute_tops, reference_gain
@@ -64,7 +65,7 @@ def test_tops_follow_every_write_and_equal_the_occupied_voxels_and_jax():
     truth = random_map(rng, p_unknown=0.0, p_occupied=0.2).reshape(-1)
     ours = OccupancyMap(G)
     theirs = jnp.zeros((G, G), jnp.int8)
-    raise_tops = jax.jit(jax_view.raise_tops)
+    raise_tops = jax.jit(jax_tops.raise_tops)
     for k in range(12):
         flat = rng.integers(0, G ** 3, 400)
         flat[:5] = flat[5:10]  # the same voxel written twice in one call

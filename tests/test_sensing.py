@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxmripp.sim import geometry, sensing, view, world
+from jaxmripp.sim import geometry, sensing, tops, world
 from jaxmripp.config import SensorConfig, WorldConfig
 
 
@@ -232,7 +232,7 @@ def test_a_cast_raises_each_column_to_its_highest_voxel_observed_occupied(model)
         for v in voxels[(voxels < G**3) & (values == geometry.OCCUPIED)]:
             x, y, z = np.unravel_index(v, (G, G, G))
             expected[x, y] = max(expected[x, y], z + 1)
-        top = view.raise_tops_from_cast(jnp.zeros((G, G), jnp.int8), result)
+        top = tops.raise_tops_from_cast(jnp.zeros((G, G), jnp.int8), result)
         np.testing.assert_array_equal(np.asarray(top), expected)
         raised += expected.max() > 0
     assert raised >= 3

@@ -13,7 +13,7 @@ import pytest
 
 from jaxmripp.config import SensorConfig, from_dict
 from jaxmripp.evaluation import baselines
-from jaxmripp.sim import claims, env, maps, sensing, view
+from jaxmripp.sim import claims, env, maps, sensing, tops, view
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.spec import view as spec
 from jaxmripp.spec.layout import FEATURES
@@ -69,7 +69,7 @@ def test_unknown_world_is_all_gain_and_a_wall_ahead_hides_what_is_behind_it():
     # 9, 16, 25 on each of 9 rays): it loses d = 3, 4, 5.
     occupancy[11, 10, 10] = UNKNOWN
     occupancy[13, 10, 10] = OCCUPIED
-    top = view.raise_tops(jnp.asarray(top), jnp.asarray([(13 * G + 10) * G + 10]),
+    top = tops.raise_tops(jnp.asarray(top), jnp.asarray([(13 * G + 10) * G + 10]),
                           jnp.asarray([OCCUPIED], jnp.int8))
     assert int(top[13, 10]) == 11
     unknown, facade = (np.asarray(x) for x in gain(occupancy, top, position, SENSOR, G))
@@ -216,7 +216,7 @@ def test_tops_follow_the_cast_writes():
     rng = np.random.default_rng(3)
     voxels = rng.integers(0, G**3 + 5, 200).astype(np.int32)  # some beyond the grid
     values = rng.choice([FREE, OCCUPIED], 200).astype(np.int8)
-    top = np.asarray(view.raise_tops(jnp.zeros((G, G), jnp.int8), voxels, values))
+    top = np.asarray(tops.raise_tops(jnp.zeros((G, G), jnp.int8), voxels, values))
     expected = np.zeros((G, G), int)
     for v, code in zip(voxels, values):
         if v < G**3 and code == OCCUPIED:

@@ -38,19 +38,27 @@ class GainModel(NamedTuple):
     facade: str = "nearby"
 
 
+_SIDES = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
+_CORNERS = ((-1, -1), (-1, 1), (1, -1), (1, 1))
+
+
+def _neighbour_max(top: np.ndarray, steps) -> np.ndarray:
+    """(G, G) -> (G, G) int32: the largest top over each column's offsets `steps`
+    (outside the grid: 0)."""
+    padded = np.pad(np.asarray(top, np.int32), 1)
+    size = padded.shape[0] - 2
+    return np.maximum.reduce([padded[1 + dx:1 + dx + size, 1 + dy:1 + dy + size]
+                              for dx, dy in steps])
+
+
 def nearby_tops(top: np.ndarray) -> np.ndarray:
     """(G, G) -> (G, G) int32: the largest top of each column and its four neighbours."""
-    padded = np.pad(np.asarray(top, np.int32), 1)
-    return np.maximum.reduce([padded[1:-1, 1:-1], padded[:-2, 1:-1], padded[2:, 1:-1],
-                              padded[1:-1, :-2], padded[1:-1, 2:]])
+    return _neighbour_max(top, _SIDES)
 
 
 def around_tops(top: np.ndarray) -> np.ndarray:
     """(G, G) -> (G, G) int32: the largest top of each column and its eight neighbours."""
-    padded = np.pad(np.asarray(top, np.int32), 1)
-    size = padded.shape[0] - 2
-    return np.maximum.reduce([padded[dx:dx + size, dy:dy + size]
-                              for dx in range(3) for dy in range(3)])
+    return _neighbour_max(top, _SIDES + _CORNERS)
 
 
 def facade_tops(top: np.ndarray, facade: str) -> np.ndarray:

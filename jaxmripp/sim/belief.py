@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.config import SensorConfig, WorldConfig
-from jaxmripp.sim import maps, view
+from jaxmripp.sim import maps, tops
 from jaxmripp.sim.geometry import OCCUPIED, UNKNOWN
 from jaxmripp.sim.types import EnvState
 from jaxmripp.spec import belief as spec
@@ -123,8 +123,8 @@ def _rate_grid(per_label: jax.Array, labels: jax.Array, cells: jax.Array,
 
 def facade_rates(rates: jax.Array, sensor: SensorConfig) -> jax.Array:
     """(G, G) float32 column rates -> (G, G) int32 quantised facade rates: the largest q of
-    the columns that make each column's facade top (`view.facade_tops`)."""
-    return view.facade_tops(spec.quantised(rates, jnp), sensor)
+    the columns that make each column's facade top (`tops.facade_tops`)."""
+    return tops.facade_tops(spec.quantised(rates, jnp), sensor)
 
 
 def robot_rates(top: jax.Array, seen: jax.Array, window_known: jax.Array, cells: jax.Array,

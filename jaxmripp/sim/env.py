@@ -17,7 +17,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import comms, flight, geometry, gp, lookahead, maps, sensing, view
+from jaxmripp.sim import comms, flight, geometry, gp, lookahead, maps, sensing, tops
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.geometry import FREE, OCCUPIED
 from jaxmripp.sim.feeding import feed_gps
@@ -50,7 +50,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         budget_initial=budget.astype(jnp.float32),
         done=jnp.zeros((n,), bool),
         team_map=maps.empty(world.height, n),
-        building_top=jnp.broadcast_to(view.empty_tops(size), (n, size, size)),
+        building_top=jnp.broadcast_to(tops.empty_tops(size), (n, size, size)),
         heard=jnp.zeros((n, n), bool),
         discovered=jnp.zeros(world.target_valid.shape, bool),
         history_pose=jnp.zeros((n, history, 4), jnp.float32),
@@ -138,7 +138,7 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     # A robot that hit a building learns the voxel, so it does not try it again.
     bumped = jnp.where(crashed, geometry.linear_index(obstacle, size), size ** 3)
     team_map = maps.observe(state.team_map, bumped[:, None])
-    top = jax.vmap(view.raise_tops)(state.building_top, bumped,
+    top = jax.vmap(tops.raise_tops)(state.building_top, bumped,
                                     jnp.full((n,), OCCUPIED, jnp.int8))
     moved = state.replace(
         position=position,
@@ -158,7 +158,7 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
         state.world, state.position, state.heading, params.sensor, size)
     team_map = maps.observe(state.team_map, casts.voxels)
-    top = jax.vmap(view.raise_tops_from_cast)(state.building_top, casts)
+    top = jax.vmap(tops.raise_tops_from_cast)(state.building_top, casts)
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
     finders = fresh.sum(axis=0)  # (T,) robots that found each window at this step

@@ -1,5 +1,6 @@
-"""The JAX implementation of `jaxmripp.spec.view`: building tops, the view gain of
-candidate poses on a robot's map and the distance to the robots heard.
+"""The JAX implementation of `jaxmripp.spec.view`: the view gain of candidate poses on a
+robot's map, with facade marked by its building tops (`jaxmripp.sim.tops`), and the
+distance to the robots heard.
 
 Per robot and step the gain costs K * 4 * R * S lookups (K candidate positions, 4
 headings, R rays, S samples) in the map with facade marked, at static offsets from the
@@ -21,7 +22,7 @@ from jaxmripp.config import SensorConfig
 from jaxmripp.sim import geometry, maps
 from jaxmripp.sim.geometry import FREE, OCCUPIED, UNKNOWN
 from jaxmripp.sim.geometry import take_flat
-from jaxmripp.sim.sensing import CastResult, scatter_max
+from jaxmripp.sim.tops import facade_tops
 from jaxmripp.spec import belief as belief_spec
 from jaxmripp.spec import vectors
 from jaxmripp.spec import view as spec
@@ -32,65 +33,13 @@ def samples_per_pose(sensor: SensorConfig, size: int) -> int:
     return spec.RAYS_PER_SIDE**2 * spec.samples_per_ray(sensor.range, size)
 
 
-def empty_tops(size: int) -> jax.Array:
-    """(G, G) int8 building tops of an empty map: no column has a known building."""
-    return jnp.zeros((size, size), jnp.int8)
-
-
-def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Array:
-    """(G, G) int8 tops after writing codes `values` at flat voxel indices `voxels` (G**3
-    and beyond: nothing written): a voxel written OCCUPIED raises its column to z + 1."""
-    size = top.shape[0]
-    voxels, values = jnp.atleast_1d(voxels), jnp.atleast_1d(values)
-    written = (voxels < size**3) & (values == OCCUPIED)
-    column = jnp.where(written, voxels // size, size * size)
-    height = ((voxels % size) + 1).astype(jnp.int8)
-    return scatter_max(top.reshape(-1), column, height).reshape(top.shape)
-
-
-def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
-    """`raise_tops` with a cast's observed voxels and codes."""
-    return raise_tops(top, cast.voxels, cast.values)
-
-
-def _shifted_max(top: jax.Array, axis: int) -> jax.Array:
-    """(G, G) -> (G, G) the largest of each column and its two neighbours along `axis`
-    (outside the grid: 0)."""
-    edge = jnp.zeros_like(jax.lax.slice_in_dim(top, 0, 1, axis=axis))
-    up = jnp.concatenate([jax.lax.slice_in_dim(top, 1, None, axis=axis), edge], axis=axis)
-    down = jnp.concatenate([edge, jax.lax.slice_in_dim(top, 0, -1, axis=axis)], axis=axis)
-    return jnp.maximum(jnp.maximum(up, down), top)
-
-
-def nearby_tops(top: jax.Array) -> jax.Array:
-    """(G, G) -> (G, G) the largest top of each column and its four neighbours."""
-    # Shifted copies in the tops' own int8: on XLA:CPU an int32 conversion of a batch of
-    # tops (E, N, G, G) costs many times what the maxima cost.
-    return jnp.maximum(_shifted_max(top, 0), _shifted_max(top, 1))
-
-
-def around_tops(top: jax.Array) -> jax.Array:
-    """(G, G) -> (G, G) the largest top of each column and its eight neighbours (the 3 x 3
-    maximum, as a maximum along x, then along y)."""
-    return _shifted_max(_shifted_max(top, 0), 1)
-
-
-def facade_tops(top: jax.Array, sensor: SensorConfig) -> jax.Array:
-    """(G, G) tops -> (G, G) the tops that mark facade voxels (`sensor.gain_facade`)."""
-    if sensor.gain_facade == "nearby":
-        return nearby_tops(top)
-    if sensor.gain_facade == "around":
-        return around_tops(top)
-    return top
-
-
 FACADE = 3  # the gain's own code for an UNKNOWN voxel that is facade (jaxmripp.spec.view)
 
 
 def _marked_code(code: jax.Array, near: jax.Array, z: jax.Array,
                  sensor: SensorConfig) -> jax.Array:
     """Codes as the gain reads them, elementwise: FACADE for unknown facade voxels (at
-    height z, under their column's facade top `near`, `facade_tops`) and, without
+    height z, under their column's facade top `near`, `tops.facade_tops`) and, without
     occlusion, known buildings marked FREE (then only leaving the grid, coded OCCUPIED by
     `_codes`, stops a ray)."""
     known = code if sensor.gain_occlusion else jnp.where(code == OCCUPIED, jnp.int8(FREE), code)
