@@ -90,8 +90,8 @@ def trained_planner(cfg: Config, run_dir: Path, best: bool = False):
     return policy_planner(network, trained_params(run_dir, cfg, best), cfg.policy.width)
 
 
-AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight", "belief_features",
-                "belief_strength")
+AHEAD_FIELDS = ("ahead_branches", "ahead_discount", "ahead_facade_weight", "ahead_rated",
+                "belief_features", "belief_strength")
 
 
 def policy_inputs(cfg: Config) -> tuple:

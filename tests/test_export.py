@@ -130,6 +130,54 @@ def test_a_policy_with_the_lookahead_input_exports_and_decides_onboard(flat_para
     np.testing.assert_array_equal(greedy.rng.random(3), fresh.random(3))
 
 
+RATED = cfgmod.load(REPO / "tests/smoke.yaml", [
+    "world.size=30", "robots.count=3", "policy.ahead_branches=4", "policy.ahead_discount=1.5",
+    "policy.belief_features=true", "policy.ahead_rated=true"])
+
+
+def test_a_rated_lookahead_input_weighs_the_facade_by_the_robots_belief(tmp_path):
+    """Exported with policy.ahead_rated, the header says so and the onboard planner builds
+    the lookahead column from its own belief's facade rates: a building whose windows it
+    found rates above the prior, so the column differs from the unrated value."""
+    from jaxmripp.runtime import OnboardPlanner, belief, lookahead
+    from jaxmripp.runtime.mapping import FREE, OCCUPIED
+    from jaxmripp.spec import layout
+
+    _, params = init_params(RATED, seed=5)
+    export.export(RATED, params, tmp_path)
+    exported = weights.load(tmp_path)
+    spec = exported.spec
+    assert spec.ahead_rated and spec.features[-3:] == ("view_windows", "view_windows_per_cost",
+                                                       "ahead_rate")
+    g = spec.size
+    xyz = np.stack(np.unravel_index(np.arange(g ** 3), (g, g, g)), -1)
+    wall = np.flatnonzero((xyz[:, 0] == 20) & (xyz[:, 1] >= 12) & (xyz[:, 1] < 18) &
+                          (xyz[:, 2] < 22))  # its far side and ends unknown
+    air = np.flatnonzero((np.linalg.norm((xyz + 0.5) / g - 0.5, axis=-1) < 0.3) &
+                         (xyz[:, 0] < 20))
+    planner = OnboardPlanner(spec, 0, 2.0, policy=exported.policy, seed=7)
+    planner.sense(np.full(3, 0.5, np.float32), 0, np.r_[air, wall],
+                  np.r_[np.full(air.size, FREE), np.full(wall.size, OCCUPIED)].astype(np.int8),
+                  4, windows=wall[::5])
+    budget_left = planner.budget_left
+    twin = np.random.default_rng(7)
+    twin.random((spec.positions * spec.oversample - 1, 3), np.float32)  # the candidates'
+    d = planner.decide()
+    uniforms = twin.random(lookahead.draw_shape(spec), np.float32)
+    rates = belief.facade_rates(planner.map, spec.belief_strength, spec.belief_prior,
+                                spec.gain_facade)
+    assert rates.max() > belief.spec.quantised(np.float32(1.0))  # found windows: above prior
+    facade = layout.FEATURES.index("view_facade")
+    assert np.any(d.features[d.mask, facade] > 0)  # candidates see the wall's far side
+    args = (uniforms, d.features[:, :-1], d.mask, d.candidates, budget_left, planner.map,
+            np.zeros((0, 3), np.float32))
+    np.testing.assert_array_equal(d.features[:, -1], lookahead.ahead_rates(*args, spec, rates))
+    unrated = lookahead.ahead_rates(*args, dataclasses.replace(spec, ahead_rated=False))
+    assert np.any(np.abs(d.features[:, -1] - unrated) > 1e-3 * np.abs(unrated).max())
+    with pytest.raises(ValueError, match="facade rates"):
+        lookahead.ahead_rates(*args, spec)
+
+
 def test_export_refuses_a_doctored_header_and_writes_nothing(flat_params, tmp_path,
                                                              monkeypatch):
     params, _ = flat_params

@@ -8,6 +8,7 @@ One compilation per jitted function below, on the smoke world (G = 20, 6 positio
 
 from __future__ import annotations
 
+import functools
 import math
 from pathlib import Path
 
@@ -171,74 +172,101 @@ def test_branches_beyond_the_candidates_are_refused():
                                                       "eval.planners=[nbv_ahead]"])
 
 
-# The lookahead input (policy.ahead_branches): the env's column against the NumPy runtime's,
-# fed the uniforms the documented key derivation gives, on states a few random flights in.
-AHEAD_CFG = config.load(ROOT / "tests" / "smoke.yaml", [
-    "policy.ahead_branches=5", "policy.ahead_discount=1.5", "policy.ahead_facade_weight=3",
-    "radio.range=0.5"])
-AHEAD_PARAMS = envmod.EnvParams.from_config(AHEAD_CFG)
-AHEAD_DYN = envmod.DynamicParams.from_config(AHEAD_CFG)
+_AHEAD = ["policy.ahead_branches=5", "policy.ahead_discount=1.5",
+          "policy.ahead_facade_weight=3", "radio.range=0.5"]
+AHEAD_SETTINGS = {  # the lookahead input as nbv_ahead's value, and as nbv_targets'
+    "view": _AHEAD,
+    "belief": [*_AHEAD, "policy.belief_features=true"],
+    "rated": [*_AHEAD, "policy.belief_features=true", "policy.ahead_rated=true"],
+}
 AHEAD_STEPS = 3
 
 
-@chex.assert_max_traces(n=1)
-def _episode_with_ahead(key):
-    """A reset and AHEAD_STEPS flights to random feasible candidates; the last observation,
-    the state it was made from and the step key that drew its lookahead."""
-    key_reset, key_steps = jax.random.split(key)
-    obs, state = envmod.reset(key_reset, AHEAD_PARAMS, AHEAD_DYN)
-    keys = jax.random.split(key_steps, AHEAD_STEPS)
-    for t in range(AHEAD_STEPS):
-        key_pick, key_step = jax.random.split(keys[t])
-        scores = jax.random.uniform(key_pick, obs.mask.shape)
-        actions = layout.masked_argmax(scores, obs.mask, jnp).astype(jnp.int32)
-        obs, state, *_ = envmod.step(key_step, state, actions, AHEAD_PARAMS, AHEAD_DYN)
-    return obs, state, key_step
+@functools.cache
+def _episodes_with_ahead(setting: str):
+    """A jitted function of keys (8,): for each, a reset and AHEAD_STEPS flights to random
+    feasible candidates under AHEAD_SETTINGS[setting]; the last observations, the states
+    they were made from and the step keys that drew their lookahead."""
+    cfg = config.load(ROOT / "tests" / "smoke.yaml", AHEAD_SETTINGS[setting])
+    params, dyn = envmod.EnvParams.from_config(cfg), envmod.DynamicParams.from_config(cfg)
+
+    def episode(key):
+        key_reset, key_steps = jax.random.split(key)
+        obs, state = envmod.reset(key_reset, params, dyn)
+        keys = jax.random.split(key_steps, AHEAD_STEPS)
+        for t in range(AHEAD_STEPS):
+            key_pick, key_step = jax.random.split(keys[t])
+            scores = jax.random.uniform(key_pick, obs.mask.shape)
+            actions = layout.masked_argmax(scores, obs.mask, jnp).astype(jnp.int32)
+            obs, state, *_ = envmod.step(key_step, state, actions, params, dyn)
+        return obs, state, key_step
+
+    return cfg, jax.jit(jax.vmap(episode))
 
 
-@pytest.fixture(scope="module")
-def ahead_episodes():
-    keys = jax.random.split(jax.random.PRNGKey(11), 8)
-    obs, state, step_keys = jax.jit(jax.vmap(_episode_with_ahead))(keys)
-    return jax.tree.map(np.asarray, (obs, state)), step_keys
+def _run_episodes(setting: str, seed: int):
+    cfg, episodes = _episodes_with_ahead(setting)
+    out = episodes(jax.random.split(jax.random.PRNGKey(seed), 8))
+    assert episodes._cache_size() == 1  # one trace per setting
+    return cfg, out
+
+
+@pytest.fixture(scope="module", params=["view", "rated"])
+def ahead_episodes(request):
+    cfg, (obs, state, step_keys) = _run_episodes(request.param, 11)
+    return cfg, jax.tree.map(np.asarray, (obs, state)), step_keys
 
 
 def test_ahead_input_matches_the_numpy_runtime(ahead_episodes):
+    """The env's lookahead input against the runtime's, fed the uniforms the documented
+    key derivation gives, on states a few random flights in; rated, the runtime weighs
+    the facade by its own belief's facade rates (`jaxmripp.runtime.belief`)."""
     from jaxmripp import export
+    from jaxmripp.runtime import belief as runtime_belief
     from jaxmripp.runtime import candidates as runtime_cands
     from jaxmripp.runtime import lookahead as runtime_lookahead
     from jaxmripp.runtime.mapping import OccupancyMap
 
-    (obs, state), step_keys = ahead_episodes
-    spec = export.runtime_spec(AHEAD_CFG)
-    n_features = len(layout.FEATURES)
-    assert obs.features.shape[-1] == n_features + 1 == len(spec.features)
+    cfg, (obs, state), step_keys = ahead_episodes
+    params = envmod.EnvParams.from_config(cfg)
+    spec = export.runtime_spec(cfg)
+    n_inputs = len(spec.features) - 1  # the columns before the lookahead input
+    assert obs.features.shape[-1] == n_inputs + 1
     assert np.all(np.isfinite(obs.features))
     draws = runtime_lookahead.draw_shape(spec)
+    facade = layout.features(belief=spec.belief_features).index(
+        "view_windows" if spec.ahead_rated else "view_facade")
     followed = improved = near_ties = 0
     for e in range(obs.mask.shape[0]):
-        robot_keys = jax.random.split(jax.random.fold_in(step_keys[e], 1), AHEAD_PARAMS.n_robots)
-        for i in range(AHEAD_PARAMS.n_robots):
+        robot_keys = jax.random.split(jax.random.fold_in(step_keys[e], 1), params.n_robots)
+        for i in range(params.n_robots):
             uniforms = np.stack([np.asarray(jax.random.uniform(k, draws[1:], jnp.float32))
                                  for k in jax.random.split(robot_keys[i], spec.ahead_branches)])
-            occupancy = OccupancyMap(AHEAD_PARAMS.size)
+            occupancy = OccupancyMap(params.size)
             occupancy.codes = state.occupancy[e, i].reshape(-1).copy()
             occupancy.top = state.building_top[e, i].copy()
             c = runtime_cands.Candidates(*(getattr(state.candidates, name)[e, i] for name in
                                            ("position", "heading", "cost", "valid")))
             heard = state.position[e][state.heard[e, i]]
-            if _near_tie(obs.features[e, i], obs.mask[e, i], c.cost, spec):
+            features = obs.features[e, i, :, :n_inputs]
+            gain = layout.view_value(features[:, layout.FEATURES.index("view_unknown")],
+                                     features[:, facade], np.float32(3.0))
+            one_step = np.asarray(runtime_view.per_cost(gain, c.cost, spec.shell[1]))
+            if _near_tie(one_step, obs.mask[e, i], spec):
                 near_ties += 1
                 continue
+            rates = None
+            if spec.ahead_rated:  # a classifier that is always right: every mapped window
+                voxel, valid = state.world.target_voxel[e], state.world.target_valid[e]
+                flat = (voxel[:, 0] * params.size + voxel[:, 1]) * params.size + voxel[:, 2]
+                occupancy.mark_windows(flat[valid & (occupancy.codes[flat] != UNKNOWN)])
+                rates = runtime_belief.facade_rates(occupancy, spec.belief_strength,
+                                                    spec.belief_prior, spec.gain_facade)
             ours = runtime_lookahead.ahead_rates(
-                uniforms, obs.features[e, i, :, :n_features], obs.mask[e, i], c,
-                state.budget_left[e, i], occupancy, heard, spec)
+                uniforms, features, obs.mask[e, i], c, state.budget_left[e, i], occupancy,
+                heard, spec, rates)
             env = obs.features[e, i, :, -1]
             np.testing.assert_allclose(ours, env, rtol=1e-6, err_msg=f"env {e} robot {i}")
-            one_step = np.asarray(runtime_view.per_cost(
-                layout.view_value(obs.features[e, i, :, layout.FEATURES.index("view_unknown")],
-                                  obs.features[e, i, :, layout.FEATURES.index("view_facade")],
-                                  np.float32(3.0)), c.cost, spec.shell[1]))
             assert np.all(env >= one_step * (1 - 1e-6))  # a value is at least its own rate
             followed += int(obs.mask[e, i].any())
             improved += int(np.sum(env > one_step * (1 + 1e-6)))
@@ -246,16 +274,23 @@ def test_ahead_input_matches_the_numpy_runtime(ahead_episodes):
     assert followed >= 6 and improved >= 6 and near_ties <= followed
 
 
-def _near_tie(features, mask, cost, spec) -> bool:
+def test_the_rated_input_reads_the_belief_and_the_rest_is_unchanged():
+    """On the same episodes, rating the lookahead input changes that column alone (the
+    flights, maps and other inputs are the same), and changes it."""
+    _, (obs_rated, state_rated, _) = _run_episodes("rated", 3)
+    _, (obs_view, state_view, _) = _run_episodes("belief", 3)
+    np.testing.assert_array_equal(state_rated.occupancy, state_view.occupancy)
+    np.testing.assert_array_equal(obs_rated.features[..., :-1], obs_view.features[..., :-1])
+    mask = np.asarray(obs_rated.mask)
+    assert not np.allclose(np.asarray(obs_rated.features[..., -1])[mask],
+                           np.asarray(obs_view.features[..., -1])[mask])
+
+
+def _near_tie(rate, mask, spec) -> bool:
     """Whether two of the branches + 1 best nonzero one-step rates agree to float32
     rounding: XLA may fuse the view value's multiply-add, so such candidates may be
     followed in either order (jaxmripp.spec.layout)."""
-    from jaxmripp.runtime import view as rv
-
-    gain = layout.view_value(features[:, layout.FEATURES.index("view_unknown")],
-                             features[:, layout.FEATURES.index("view_facade")],
-                             np.float32(spec.ahead_facade_weight))
-    rate = np.sort(rv.per_cost(gain, cost, spec.shell[1])[mask])[::-1][:spec.ahead_branches + 1]
+    rate = np.sort(rate[mask])[::-1][:spec.ahead_branches + 1]
     rate = rate[rate > 0]
     return bool(np.any(np.diff(rate) >= -1e-6 * rate[:-1]))
 
@@ -264,3 +299,6 @@ def test_ahead_input_is_off_by_default_and_bounded_by_the_candidates():
     assert envmod.EnvParams.from_config(CFG).n_features == len(layout.FEATURES)
     with pytest.raises(config.ConfigError, match="policy.ahead_branches"):
         config.load(ROOT / "tests" / "smoke.yaml", ["policy.ahead_branches=25"])
+    with pytest.raises(config.ConfigError, match="policy.ahead_rated"):
+        config.load(ROOT / "tests" / "smoke.yaml", ["policy.ahead_branches=5",
+                                                    "policy.ahead_rated=true"])

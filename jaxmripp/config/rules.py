@@ -231,6 +231,11 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("policy.ahead_branches", cfg.policy.ahead_branches,
                          f"0 (no lookahead input) to the candidate count 4 x "
                          f"candidates.positions = {cfg.candidates.count}"))
+    if cfg.policy.ahead_rated and not (cfg.policy.ahead_branches and
+                                       cfg.policy.belief_features):
+        problems.append(("policy.ahead_rated", cfg.policy.ahead_rated,
+                         "false, or true with policy.ahead_branches > 0 and "
+                         "policy.belief_features true (it weighs the lookahead by the belief)"))
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))

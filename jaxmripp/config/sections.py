@@ -137,6 +137,9 @@ class PolicyConfig:
     ahead_branches: int = 0
     ahead_discount: float = 2.0
     ahead_facade_weight: float = 2.0
+    # True: the lookahead input weighs the facade by the target belief (needs
+    # belief_features, at belief_strength): the value nbv_targets ranks by
+    ahead_rated: bool = False
     # True: two more inputs, the view's facade weighed by each building's posterior window
     # rate (`view_windows`, `view_windows_per_cost`: jaxmripp.spec.belief), with this prior
     # strength (pseudo-windows); the NumPy runtime computes them too (jaxmripp.runtime.belief)

@@ -19,6 +19,7 @@ from jaxmripp.spec import layout
 F32 = np.float32
 _UNKNOWN = layout.FEATURES.index("view_unknown")
 _FACADE = layout.FEATURES.index("view_facade")
+_WINDOWS = layout.features(belief=True).index("view_windows")
 
 
 def draw_shape(spec: RuntimeSpec) -> tuple[int, int, int]:
@@ -29,14 +30,23 @@ def draw_shape(spec: RuntimeSpec) -> tuple[int, int, int]:
 
 def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
                 c: cands.Candidates, budget_left, occupancy: OccupancyMap,
-                others: np.ndarray, spec: RuntimeSpec) -> np.ndarray:
-    """(L,) float32 `ahead_rate` for candidates `c` with FEATURES columns `features`
-    (L, F), feasibility `mask` (L,), on the robot's map with the robots heard this round at
-    `others` (M, 3); `uniforms` has `draw_shape(spec)`. The followed candidates are
-    searched together, each on its own copy of the map."""
+                others: np.ndarray, spec: RuntimeSpec,
+                rates: np.ndarray | None = None) -> np.ndarray:
+    """(L,) float32 `ahead_rate` for candidates `c` with `spec.features` columns `features`
+    (L, F, the lookahead input not yet among them), feasibility `mask` (L,), on the
+    robot's map with the robots heard this round at `others` (M, 3); `uniforms` has
+    `draw_shape(spec)`. With `spec.ahead_rated` the facade is weighed by the robot's
+    facade rates `rates` (G, G) int (`jaxmripp.runtime.belief.facade_rates`), those its
+    `view_windows` column was computed with. The followed candidates are searched
+    together, each on its own copy of the map."""
     weight, discount = F32(spec.ahead_facade_weight), F32(spec.ahead_discount)
     shell = spec.shell[1]
-    gain = layout.view_value(features[:, _UNKNOWN], features[:, _FACADE], weight)
+    if spec.ahead_rated and rates is None:
+        raise ValueError("ahead_rates: the lookahead input is rated (ahead_rated); pass the "
+                         "robot's facade rates")
+    facade_column = _WINDOWS if spec.ahead_rated else _FACADE
+    rates = rates if spec.ahead_rated else None
+    gain = layout.view_value(features[:, _UNKNOWN], features[:, facade_column], weight)
     rate = view.per_cost(gain, c.cost, shell)
     ranked = np.where(mask, rate, -np.inf).astype(F32)
     followed = np.argsort(-ranked, kind="stable")[:spec.ahead_branches]
@@ -56,9 +66,10 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     # copies, as the draws were).
     valid = following.valid
     unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
-    unknown[valid], facade[valid] = view.view_gain(
-        after, occupancy.top, following.position[valid], following.heading[valid],
-        spec.gain, occupancy.size, rows=np.nonzero(valid)[0])
+    gains = view.view_gain(after, occupancy.top, following.position[valid],
+                           following.heading[valid], spec.gain, occupancy.size,
+                           rows=np.nonzero(valid)[0], rates=rates)
+    unknown[valid], facade[valid] = gains[0], gains[-1]
     rates = view.per_cost(gain[first, None] + discount * layout.view_value(unknown, facade,
                                                                           weight),
                           c.cost[first, None] + discount * following.cost, shell)

@@ -311,9 +311,9 @@ class OnboardPlanner(RadioExchange):
             if ahead_uniforms is None:
                 ahead_uniforms = self.rng.random(lookahead.draw_shape(self.spec), F32)
             mask = c.valid & (self.step < self.max_steps)
-            rates = lookahead.ahead_rates(ahead_uniforms, features, mask, c, self.budget_left,
-                                          self.map, heard, self.spec)
-            features = np.concatenate([features, rates[:, None]], axis=1)
+            values = lookahead.ahead_rates(ahead_uniforms, features, mask, c,
+                                           self.budget_left, self.map, heard, self.spec, rates)
+            features = np.concatenate([features, values[:, None]], axis=1)
         state = observation.robot_state(self.position, self.heading, self.budget_left,
                                         self.budget_initial, self.step, self.max_steps)
         return features, state

@@ -63,10 +63,12 @@ class RuntimeSpec:
     flight: str = "known_free"
     escape: bool = False
     # The lookahead input (jaxmripp.spec.layout): candidates followed (0: no such input),
-    # the later flight's weight and the facade weight of its view value.
+    # the later flight's weight, the facade weight of its view value and whether the facade
+    # is weighed by the target belief.
     ahead_branches: int = 0
     ahead_discount: float = 2.0
     ahead_facade_weight: float = 2.0
+    ahead_rated: bool = False
     # The view gain's model of the sensor and the world (sensor.gain_occlusion and
     # sensor.gain_facade; jaxmripp.spec.view).
     gain_occlusion: bool = True
@@ -135,7 +137,8 @@ class RuntimeSpec:
         if "ahead" in config:  # exports without the lookahead input may lack the section
             ahead = dict(ahead_branches=get("ahead", "branches", int),
                          ahead_discount=get("ahead", "discount", float),
-                         ahead_facade_weight=get("ahead", "facade_weight", float))
+                         ahead_facade_weight=get("ahead", "facade_weight", float),
+                         ahead_rated=get("ahead", "rated", bool, False))
         if "belief" in config:  # exports from before the belief input lack the section
             ahead.update(belief_features=get("belief", "features", bool),
                          belief_strength=get("belief", "strength", float),

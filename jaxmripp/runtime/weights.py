@@ -17,7 +17,7 @@ policy.json
                       may be absent: off),
                       gp.*, reward.utility_norm, episode.max_steps, ahead.* (the
                       lookahead input of `jaxmripp.spec.layout`: branches, discount,
-                      facade_weight; absent: none), belief.* (the target belief of
+                      facade_weight, rated (absent: false); absent: none), belief.* (the target belief of
                       `jaxmripp.spec.belief`: features, strength and the trained world's
                       prior rate m; written with the belief input only); infinities are the
                       string "inf". The runtime flies safety.flight "known_free" only and
@@ -77,7 +77,8 @@ def config_header(cfg) -> dict[str, Any]:
         "episode": {"max_steps": cfg.episode.max_steps},
         "ahead": {"branches": cfg.policy.ahead_branches,
                   "discount": cfg.policy.ahead_discount,
-                  "facade_weight": cfg.policy.ahead_facade_weight},
+                  "facade_weight": cfg.policy.ahead_facade_weight,
+                  "rated": cfg.policy.ahead_rated},
     }
     if cfg.policy.belief_features:  # absent: no belief input (as exports before it)
         world = cfg.world

@@ -1,6 +1,6 @@
 """Next-best view in turn, looking more than one flight ahead (the `nbv_ahead` baseline,
 the lookahead teacher of `ppo.teacher` and the policy's lookahead input of
-`policy.ahead_branches`, `ahead_rates`).
+`policy.ahead_branches`, `ahead_rates`; with `policy.ahead_rated`, nbv_targets' value).
 
 `nbv_team` takes the candidate with the most view gain per unit of flight cost, one step
 at a time. A pose that sees a little but opens onto a rich view next is worth more than
@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import claims, geometry, view
+from jaxmripp.sim import belief, claims, geometry, view
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
@@ -44,6 +44,7 @@ from jaxmripp.spec import layout
 
 _UNKNOWN = layout.FEATURES.index("view_unknown")
 _FACADE = layout.FEATURES.index("view_facade")
+_WINDOWS = layout.features(belief=True).index("view_windows")
 
 
 @struct.dataclass
@@ -118,17 +119,19 @@ def continuation(search: Search, occupancy, top, position, heading, budget_left,
 
 
 def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
-                     candidates: cands.Candidates, budget_left, flights: int):
+                     candidates: cands.Candidates, budget_left, flights: int,
+                     first_gain: jax.Array | None = None):
     """(L,) v(a) of the module docstring for robot i's `branches` best candidates by
     nbv_team's score, -inf for the others and for infeasible ones, and (L,) that score
     (the one-step rate). `mine` is the robot's observation (L, F) on `occupancy`, its map
-    with its peers' claims counted as seen; with facade rates (`search.rates`) the first
-    gains are computed on that map, else read from the observation's view columns."""
+    with its peers' claims counted as seen. The candidates' gains g (L,) are `first_gain`
+    where given; else, with facade rates (`search.rates`), computed on that map, and
+    without, read from the observation's view columns."""
     shell = search.params.candidates.shell[1]
-    if search.rates is None:
+    if first_gain is None and search.rates is None:
         first_gain = layout.view_value(mine.features[:, _UNKNOWN], mine.features[:, _FACADE],
                                        search.facade_weight)
-    else:
+    elif first_gain is None:
         first_gain = gains(search, occupancy, top,
                            candidates.position[::geometry.N_HEADINGS])
     rate = view.per_cost(first_gain, candidates.cost, shell)
@@ -149,21 +152,30 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
 def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
                 dyn: DynamicParams) -> jax.Array:
     """(N, L) the `ahead_rate` input of `jaxmripp.spec.layout` for the team's observations
-    `obs` (FEATURES columns) on their own maps: `lookahead_values` over two flights where
-    a candidate is followed, its one-step rate elsewhere. One environment: callers vmap."""
+    `obs` (FEATURES columns, then the BELIEF columns where the policy reads them) on their
+    own maps: `lookahead_values` over two flights where a candidate is followed, its
+    one-step rate elsewhere; with `params.ahead.rated` the facade is weighed by each
+    robot's target belief (the first flight's from the observation's `view_windows`).
+    One environment: callers vmap."""
     ahead = params.ahead
     keys = jax.random.split(key, params.n_robots)
+    rates = (belief.team_rates(state, params.belief.strength, params.sensor, params.world)
+             if ahead.rated else jnp.zeros((params.n_robots,), jnp.int32))
+    facade = _WINDOWS if ahead.rated else _FACADE
 
-    def one(i, features, mask, occupancy, top, c, budget_left, key):
+    def one(i, features, mask, occupancy, top, c, budget_left, key, rates_i):
         mine = Observation(features=features, mask=mask, robot_state=None, global_state=None)
         search = Search(params, dyn, state.position, state.heard[i], ahead.facade_weight,
-                        ahead.discount, ahead.branches)
-        values, rate = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2)
+                        ahead.discount, ahead.branches, rates_i if ahead.rated else None)
+        first_gain = layout.view_value(features[:, _UNKNOWN], features[:, facade],
+                                       ahead.facade_weight)
+        values, rate = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2,
+                                        first_gain)
         return jnp.where(jnp.isfinite(values), values, rate)
 
     return jax.vmap(one)(jnp.arange(params.n_robots), obs.features, obs.mask,
                          state.occupancy, state.building_top, state.candidates,
-                         state.budget_left, keys)
+                         state.budget_left, keys, rates)
 
 
 def with_ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,

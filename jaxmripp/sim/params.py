@@ -42,6 +42,7 @@ class StaticAhead:
     branches: int = 0
     discount: float = 2.0
     facade_weight: float = 2.0
+    rated: bool = False  # the facade weighed by the target belief (nbv_targets' value)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -74,7 +75,8 @@ class EnvParams:
                    radio=StaticRadio(cfg.radio.relay, cfg.radio.share_maps),
                    candidates=cfg.candidates, gp=cfg.gp, max_steps=cfg.episode.max_steps,
                    ahead=StaticAhead(cfg.policy.ahead_branches, cfg.policy.ahead_discount,
-                                     cfg.policy.ahead_facade_weight),
+                                     cfg.policy.ahead_facade_weight,
+                                     cfg.policy.ahead_rated),
                    belief=StaticBelief(cfg.policy.belief_features, cfg.policy.belief_strength))
 
     @property

@@ -38,7 +38,10 @@ the map, candidates b are drawn around a's pose by the candidate rule (budget: t
 budget left minus c(a); the robots heard this round), their g(b) are computed on that
 copy, and
     ahead_rate(a) = max(r(a), max over feasible b of per_cost(g(a) + d g(b), c(a) + d c(b)));
-every other row (not followed, or nothing feasible) holds r. Rates that are equal in exact
+every other row (not followed, or nothing feasible) holds r. With `policy.ahead_rated` (and
+the belief input) the facade term of g is the belief-weighed one, view_windows for a (its
+column) and for each b (on the copy, with the robot's facade rates that its view_windows
+column was computed with): the value `nbv_targets` ranks by, its peers' claims aside. Rates that are equal in exact
 arithmetic may differ in the last bit between the two sides (XLA may fuse g's multiply-add),
 so such candidates may be followed in either order. The env draws robot i's k-th block
 from `jax.random.split(key_i, n)[k]`, key_i = `jax.random.split(fold_in(step key, 1),
