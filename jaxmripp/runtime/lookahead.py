@@ -45,7 +45,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
         raise ValueError("ahead_rates: the lookahead input is rated (ahead_rated); pass the "
                          "robot's facade rates")
     facade_column = _WINDOWS if spec.ahead_rated else _FACADE
-    rates = rates if spec.ahead_rated else None
+    facade_rates = rates if spec.ahead_rated else None
     gain = layout.view_value(features[:, _UNKNOWN], features[:, facade_column], weight)
     rate = view.per_cost(gain, c.cost, shell)
     ranked = np.where(mask, rate, -np.inf).astype(F32)
@@ -68,7 +68,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
     gains = view.view_gain(after, occupancy.top, following.position[valid],
                            following.heading[valid], spec.gain, occupancy.size,
-                           rows=np.nonzero(valid)[0], rates=rates)
+                           rows=np.nonzero(valid)[0], rates=facade_rates)
     unknown[valid], facade[valid] = gains[0], gains[-1]
     rates = view.per_cost(gain[first, None] + discount * layout.view_value(unknown, facade,
                                                                           weight),
