@@ -21,7 +21,8 @@ from jaxmripp.sim import comms, flight, geometry, gp, lookahead, maps, sensing, 
 from jaxmripp.sim import world as worldmod
 from jaxmripp.sim.geometry import FREE, OCCUPIED
 from jaxmripp.sim.feeding import feed_gps
-from jaxmripp.sim.observation import FEATURES, ROBOT_STATE, Observation, observe  # noqa: F401
+from jaxmripp.sim.observation import (FEATURES, ROBOT_STATE, Observation,  # noqa: F401
+                                      belief_rates, observe)
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import (EnvState, Metrics, StepInfo, discovered_fraction,  # noqa: F401
                                 episode_done)
@@ -64,8 +65,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         metrics=Metrics.zeros(n),
     )
     state, _ = _after_move(key_rest, state, jnp.ones((n,), bool), params, dyn)
-    return lookahead.with_ahead_rates(key_rest, observe(state, params), state, params,
-                                      dyn), state
+    return _observations(key_rest, state, params, dyn), state
 
 
 def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvParams,
@@ -78,8 +78,15 @@ def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvPara
         + dyn.gamma * parts.reward_communication
     reward = jnp.where(moving, reward, 0.0)
     info = parts.replace(acted=moving)
-    obs = lookahead.with_ahead_rates(key, observe(state, params), state, params, dyn)
-    return obs, state, reward, state.done, info
+    return _observations(key, state, params, dyn), state, reward, state.done, info
+
+
+def _observations(key, state: EnvState, params: EnvParams, dyn: DynamicParams) -> Observation:
+    """The team's observations with the lookahead input; the belief's facade rates are
+    computed once for both."""
+    rates = belief_rates(state, params)
+    return lookahead.with_ahead_rates(key, observe(state, params, rates), state, params, dyn,
+                                      rates)
 
 
 def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):

@@ -36,7 +36,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from jaxmripp.sim import candidates as cands
-from jaxmripp.sim import belief, claims, geometry, view
+from jaxmripp.sim import claims, geometry, view
 from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
@@ -150,23 +150,22 @@ def lookahead_values(search: Search, mine: Observation, occupancy, top, key,
 
 
 def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
-                dyn: DynamicParams) -> jax.Array:
+                dyn: DynamicParams, rates: jax.Array | None) -> jax.Array:
     """(N, L) the `ahead_rate` input of `jaxmripp.spec.layout` for the team's observations
     `obs` (FEATURES columns, then the BELIEF columns where the policy reads them) on their
     own maps: `lookahead_values` over two flights where a candidate is followed, its
     one-step rate elsewhere; with `params.ahead.rated` the facade is weighed by each
-    robot's target belief (the first flight's from the observation's `view_windows`).
+    robot's target belief (the first flight's from the observation's `view_windows`, the
+    later ones' from `rates` (N, G, G) int32, the facade rates `obs` was built with).
     One environment: callers vmap."""
     ahead = params.ahead
     keys = jax.random.split(key, params.n_robots)
-    rates = (belief.team_rates(state, params.belief.strength, params.sensor, params.world)
-             if ahead.rated else jnp.zeros((params.n_robots,), jnp.int32))
     facade = _WINDOWS if ahead.rated else _FACADE
 
     def one(i, features, mask, occupancy, top, c, budget_left, key, rates_i):
         mine = Observation(features=features, mask=mask, robot_state=None, global_state=None)
         search = Search(params, dyn, state.position, state.heard[i], ahead.facade_weight,
-                        ahead.discount, ahead.branches, rates_i if ahead.rated else None)
+                        ahead.discount, ahead.branches, rates_i)
         first_gain = layout.view_value(features[:, _UNKNOWN], features[:, facade],
                                        ahead.facade_weight)
         values, rate = lookahead_values(search, mine, occupancy, top, key, c, budget_left, 2,
@@ -175,17 +174,18 @@ def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
 
     return jax.vmap(one)(jnp.arange(params.n_robots), obs.features, obs.mask,
                          state.occupancy, state.building_top, state.candidates,
-                         state.budget_left, keys, rates)
+                         state.budget_left, keys, rates if ahead.rated else None)
 
 
 def with_ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
-                     dyn: DynamicParams) -> Observation:
+                     dyn: DynamicParams, rates: jax.Array | None) -> Observation:
     """`obs` with the lookahead input appended when `params.ahead.branches` > 0 (the
-    key: the step's, from which `ahead_rates` draws with `fold_in(key, 1)`)."""
+    key: the step's, from which `ahead_rates` draws with `fold_in(key, 1)`; `rates`: the
+    facade rates `obs` was built with, `jaxmripp.sim.observation.belief_rates`)."""
     if not params.ahead.branches:
         return obs
-    rates = ahead_rates(jax.random.fold_in(key, 1), obs, state, params, dyn)
-    return obs.replace(features=jnp.concatenate([obs.features, rates[..., None]], axis=-1))
+    values = ahead_rates(jax.random.fold_in(key, 1), obs, state, params, dyn, rates)
+    return obs.replace(features=jnp.concatenate([obs.features, values[..., None]], axis=-1))
 
 
 def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,

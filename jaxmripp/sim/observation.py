@@ -92,8 +92,18 @@ def _belief_columns(windows: jax.Array, cost: jax.Array, shell_outer: float) -> 
     return jnp.stack([windows, view.per_cost(windows, cost, shell_outer)], axis=-1)
 
 
-def observe(state: EnvState, params: EnvParams) -> Observation:
-    """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE.
+def belief_rates(state: EnvState, params: EnvParams) -> jax.Array | None:
+    """(N, G, G) int32 each robot's facade rates (`jaxmripp.sim.belief.team_rates`) where
+    the policy reads the belief columns, else None: computed once per step and shared by
+    `observe` and the rated lookahead input."""
+    if not params.belief.features:
+        return None
+    return belief.team_rates(state, params.belief.strength, params.sensor, params.world)
+
+
+def observe(state: EnvState, params: EnvParams, rates: jax.Array | None) -> Observation:
+    """Per-robot observations (leading axis N), laid out as FEATURES and ROBOT_STATE;
+    `rates` from `belief_rates`.
 
     Only static parameters are read: budgets enter as fractions of the initial budget.
     The lookahead input, which draws candidates, is appended by the env
@@ -110,8 +120,6 @@ def observe(state: EnvState, params: EnvParams) -> Observation:
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
-    rates = (belief.team_rates(state, params.belief.strength, params.sensor, params.world)
-             if params.belief.features else None)
     gains = view.team_view_gain(state.team_map, state.building_top,
                                 c.position[:, ::geometry.N_HEADINGS], state.position,
                                 params.sensor, params.size, rates=rates)
