@@ -4,6 +4,7 @@ poses, against hand-worked cases and a loop-by-loop reference; the next-best-vie
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import jax
@@ -235,6 +236,12 @@ def test_peer_distance_caps_and_ignores_robots_not_heard():
     np.testing.assert_array_equal(far, spec.PEER_CAP)
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _observe(state, params):
+    """The team's observations as the env builds them, the lookahead input aside."""
+    return env.observe(state, params, env.belief_rates(state, params))
+
+
 def _twins():
     """A reset team whose robot 1 is a copy of robot 0: one spot, one map, one candidate
     set (both hear each other)."""
@@ -247,7 +254,7 @@ def _twins():
                           building_top=twin(state.building_top),
                           candidates=jax.tree.map(twin, state.candidates))
     assert bool(state.heard[0, 1]) and bool(state.heard[1, 0])
-    return params, dyn, state, jax.jit(env.observe, static_argnums=1)(state, params)
+    return params, dyn, state, _observe(state, params)
 
 
 def test_deciding_in_turn_hides_exactly_the_views_peers_claimed():
@@ -285,7 +292,7 @@ def test_with_relay_a_robot_hears_the_claims_of_its_whole_component():
                           team_map=maps.pack(triple(state.occupancy), maps.buildings(state.team_map)),
                           building_top=triple(state.building_top),
                           candidates=jax.tree.map(triple, state.candidates), heard=chain)
-    obs = jax.jit(env.observe, static_argnums=1)(state, params)
+    obs = _observe(state, params)
     unknown = FEATURES.index("view_unknown")
     decide = lambda i, mine, occupancy: (jnp.argmax(jnp.where(  # noqa: E731
         mine.mask, mine.features[:, FEATURES.index("view_unknown_per_cost")], -1.0)), None)
