@@ -1,5 +1,6 @@
 import dataclasses
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -128,6 +129,22 @@ def test_kickstarting_needs_the_view_features():
         cfgmod.load(None, ["ppo.teacher=oracle"])
     with pytest.raises(ConfigError, match="ppo.teacher_facade: got -1.0"):
         cfgmod.load(None, ["ppo.teacher_facade=-1"])
+
+
+@pytest.mark.parametrize("override, teacher_key", [
+    ("policy.ahead_facade_weight=4", "ppo.teacher_facade = 2.0"),
+    ("policy.ahead_discount=1", "eval.nbv_targets_discount = 3.0"),
+    ("eval.nbv_targets_branches=16", "eval.nbv_targets_branches = 16"),
+    ("policy.belief_strength=1", "eval.nbv_targets_strength = 3.0"),
+])
+def test_the_rated_input_ranks_as_its_teacher(override, teacher_key):
+    """recipe_default's rated input is its nbv_targets teacher's value: a setting of either
+    side alone is refused, naming the other side's value."""
+    cfgmod.load("configs/recipe_default.yaml")
+    with pytest.raises(ConfigError, match=re.escape(teacher_key)):
+        cfgmod.load("configs/recipe_default.yaml", [override])
+    # without the teacher the input may weigh as it likes
+    cfgmod.load("configs/recipe_default.yaml", [override, "ppo.teacher_coef=0"])
 
 
 def test_near_miss_key_suggests_the_right_name():

@@ -236,6 +236,7 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("policy.ahead_rated", cfg.policy.ahead_rated,
                          "false, or true with policy.ahead_branches > 0 and "
                          "policy.belief_features true (it weighs the lookahead by the belief)"))
+    problems += _rated_input_checks(cfg)
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,
                          f"a multiple of policy.heads = {cfg.policy.heads}"))
@@ -253,6 +254,25 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
                          f"0 or a divisor of the environments per minibatch (train.envs / "
                          f"ppo.minibatches = {per_minibatch})"))
     return problems
+
+
+def _rated_input_checks(cfg: Config) -> list[tuple[str, Any, str]]:
+    """A rated lookahead input beside the nbv_targets teacher is the value that teacher
+    ranks by, so each of its settings must equal the teacher's."""
+    p, e = cfg.policy, cfg.eval
+    if not (p.ahead_rated and cfg.ppo.teacher == "nbv_targets" and cfg.ppo.teacher_coef > 0):
+        return []
+    pairs = (("policy.ahead_facade_weight", p.ahead_facade_weight, "ppo.teacher_facade",
+              cfg.ppo.teacher_facade),
+             ("policy.ahead_discount", p.ahead_discount, "eval.nbv_targets_discount",
+              e.nbv_targets_discount),
+             ("policy.ahead_branches", p.ahead_branches, "eval.nbv_targets_branches",
+              e.nbv_targets_branches),
+             ("policy.belief_strength", p.belief_strength, "eval.nbv_targets_strength",
+              e.nbv_targets_strength))
+    return [(key, value, f"{teacher_key} = {teacher_value} (the rated input is the value "
+             "of the nbv_targets teacher)")
+            for key, value, teacher_key, teacher_value in pairs if value != teacher_value]
 
 
 def _pad_checks(cfg: Config) -> list[tuple[str, Any, str]]:
