@@ -37,12 +37,17 @@ SHIPPED = sorted((REPO / "pretrained").glob("*/metadata.json"))
 def _training_settings(cfg: Config) -> dict:
     """Every setting that shapes a trained policy: all but the run's name, the run it
     started from (a path on the machine that trained it) and the evaluation settings other
-    than the lookahead search's (the nbv_ahead teacher and input read those)."""
+    than the lookahead searches' (the nbv_ahead and nbv_targets teachers read those; the
+    teacher's facade weight is ppo.teacher_facade)."""
     flat = {f"{section}.{key}": value
             for section, fields in cfgmod.to_dict(cfg).items() for key, value in fields.items()}
     return {key: value for key, value in flat.items()
             if key not in ("train.name", "train.init_from")
-            and (not key.startswith("eval.") or key.startswith("eval.nbv_ahead_"))}
+            and (not key.startswith("eval.") or key.startswith(_TEACHER_SEARCH))}
+
+
+_TEACHER_SEARCH = ("eval.nbv_ahead_", "eval.nbv_targets_strength", "eval.nbv_targets_discount",
+                   "eval.nbv_targets_branches")
 
 
 @pytest.mark.parametrize("metadata", SHIPPED, ids=lambda path: path.parent.name)
