@@ -1,6 +1,7 @@
 """benchmarks/scale.py: the grid's tables from JSON lines collected over runs (--collected)
 and, slow, the --eval cell's figures and curves."""
 
+import functools
 import importlib.util
 import json
 import math
@@ -16,12 +17,30 @@ from scipy import stats
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
 
 
-def collected(path: Path, *extra: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, str(SCRIPT), "--collected", str(path), *extra],
-                          capture_output=True, text=True, timeout=120)
+@functools.cache
+def _scale_module():
+    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
+    scale = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(scale)
+    return scale
 
 
-def test_tables_from_lines_collected_over_runs(tmp_path):
+def run_script(capsys, *argv: str) -> SimpleNamespace:
+    """The script's main in this process on the command line `argv` (the slow tests run
+    it as a program): its exit status and what it printed."""
+    try:
+        status = _scale_module().main(list(argv))
+    except SystemExit as exit_:  # argparse's own errors
+        status = exit_.code
+    out, err = capsys.readouterr()
+    return SimpleNamespace(returncode=status, stdout=out, stderr=err)
+
+
+def collected(capsys, path: Path, *extra: str) -> SimpleNamespace:
+    return run_script(capsys, "--collected", str(path), *extra)
+
+
+def test_tables_from_lines_collected_over_runs(tmp_path, capsys):
     def line(name, value, std):
         return json.dumps({"name": f"scale.grid.{name}", "value": value, "unit": "%",
                            "std": std, "worlds": 100})
@@ -37,7 +56,7 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
     path = tmp_path / "grid.jsonl"
     path.write_text("\n".join(lines) + "\n")
     figure = tmp_path / "grid.png"
-    done = collected(path, "--figure", str(figure))
+    done = collected(capsys, path, "--figure", str(figure))
     assert done.returncode == 0, done.stderr
     out = done.stdout.splitlines()
     g75 = out.index("3x world (G = 75, rho = 0.2):")
@@ -70,7 +89,7 @@ def test_tables_from_lines_collected_over_runs(tmp_path):
     assert figure.stat().st_size > 0
 
 
-def test_tables_from_several_files_keep_the_last_file_of_a_cell(tmp_path):
+def test_tables_from_several_files_keep_the_last_file_of_a_cell(tmp_path, capsys):
     def write(name, *cells):
         path = tmp_path / name
         path.write_text("".join(json.dumps({"name": f"scale.grid.{c}", "value": v, "std": 1.0,
@@ -81,8 +100,7 @@ def test_tables_from_several_files_keep_the_last_file_of_a_cell(tmp_path):
                   ("policy.single_hop.g100.n16", 40.0))
     second = write("b.jsonl", ("policy.relay.g100.n16", 60.0), ("nbv.global.g75.n32", 90.0),
                    ("policy.single_hop.g75.n32", 45.0))
-    done = subprocess.run([sys.executable, str(SCRIPT), "--collected", str(first), str(second)],
-                          capture_output=True, text=True, timeout=120)
+    done = collected(capsys, first, str(second))
     assert done.returncode == 0, done.stderr
     out = done.stdout.splitlines()
     summary = out.index("The policy over the best planner with global communication:")
@@ -91,26 +109,22 @@ def test_tables_from_several_files_keep_the_last_file_of_a_cell(tmp_path):
         "| 3x world (G = 75, rho = 0.2), relay | - | - |",
         "| 8x world (G = 100, rho = 0.15), single hop | 0.500 | - |",
         "| 8x world (G = 100, rho = 0.15), relay | 0.750 | - |"]
-    missing = subprocess.run([sys.executable, str(SCRIPT), "--collected", str(first),
-                              str(tmp_path / "none.jsonl")],
-                             capture_output=True, text=True, timeout=120)
+    missing = collected(capsys, first, str(tmp_path / "none.jsonl"))
     assert missing.returncode == 2
     assert f"--collected {tmp_path / 'none.jsonl'}: no such file" in missing.stderr
 
 
-def test_no_grid_lines_is_an_error(tmp_path):
+def test_no_grid_lines_is_an_error(tmp_path, capsys):
     path = tmp_path / "other.jsonl"
     path.write_text(json.dumps({"name": "scale.peak_rss_mb", "value": 1.0}) + "\n")
-    done = collected(path)
+    done = collected(capsys, path)
     assert done.returncode == 2
     assert f"--collected {path}: no scale.grid.<planner>.<exchange>.g<G>.n<N> lines" in done.stderr
 
 
-def test_a_planner_outside_the_allowed_is_an_error():
-    done = subprocess.run([sys.executable, str(SCRIPT), "--grid", "--policy",
-                           str(SCRIPT.parents[1] / "pretrained" / "scale"),
-                           "--range-planners", "policy,oracle"],
-                          capture_output=True, text=True, timeout=120)
+def test_a_planner_outside_the_allowed_is_an_error(capsys):
+    done = run_script(capsys, "--grid", "--policy", str(SCRIPT.parents[1] / "pretrained" / "scale"),
+                      "--range-planners", "policy,oracle")
     assert done.returncode == 2
     assert "--range-planners ['oracle']: allowed policy, coordinated, nbv, nbv_team" in done.stderr
 
@@ -138,19 +152,16 @@ def test_eval_cell_prints_the_ratio_of_its_own_figures_and_draws_the_curves(tmp_
 
 
 @pytest.mark.parametrize("ranges", ["0.12,x", "0.12,inf", "0,0.2", ""])
-def test_radio_ranges_that_are_not_finite_positive_numbers_are_an_error(ranges):
-    done = subprocess.run([sys.executable, str(SCRIPT), "--ranges", ranges, "--policy",
-                           str(SCRIPT.parents[1] / "pretrained" / "scale")],
-                          capture_output=True, text=True, timeout=120)
+def test_radio_ranges_that_are_not_finite_positive_numbers_are_an_error(ranges, capsys):
+    done = run_script(capsys, "--ranges", ranges, "--policy",
+                      str(SCRIPT.parents[1] / "pretrained" / "scale"))
     assert done.returncode == 2
     assert f"--ranges {ranges}: allowed a comma-separated list of finite positive" in done.stderr
 
 
-def test_ranges_need_the_policy_among_the_range_planners():
-    done = subprocess.run([sys.executable, str(SCRIPT), "--ranges", "0.12", "--policy",
-                           str(SCRIPT.parents[1] / "pretrained" / "scale"),
-                           "--range-planners", "nbv"],
-                          capture_output=True, text=True, timeout=120)
+def test_ranges_need_the_policy_among_the_range_planners(capsys):
+    done = run_script(capsys, "--ranges", "0.12", "--policy",
+                      str(SCRIPT.parents[1] / "pretrained" / "scale"), "--range-planners", "nbv")
     assert done.returncode == 2
     assert "--ranges compares the policy with relay" in done.stderr
 
@@ -185,9 +196,7 @@ def test_ranges_print_each_range_and_the_ratio_of_their_own_figures(tmp_path):
 def test_ranges_figures_come_from_the_runs_of_each_range(tmp_path, monkeypatch, capsys):
     """--ranges' lines and ratios from hand-made runs (the sweep itself is the slow test's):
     each relay range over the best global planner, with Welch's p by scipy."""
-    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
-    scale = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scale)
+    scale = _scale_module()
     found = {("policy", "relay", 64, 0.12): [95.0, 96.0, 97.0],
              ("policy", "relay", 64, 0.25): [98.5, 99.0, 99.5],
              ("policy", "single_hop", 64, 0.12): [94.0, 95.0, 95.5],
@@ -210,13 +219,6 @@ def test_ranges_figures_come_from_the_runs_of_each_range(tmp_path, monkeypatch, 
         p = stats.ttest_ind(relay, found["nbv", "global", 64, float("inf")], equal_var=False).pvalue
         assert ratio["p"] == pytest.approx(p, rel=1e-2)
     assert figure.stat().st_size > 0
-
-
-def _scale_module():
-    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
-    scale = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scale)
-    return scale
 
 
 def test_tight_cell_is_the_eval_cell_at_the_tight_budget(monkeypatch, capsys):
@@ -254,9 +256,8 @@ def test_tight_cell_is_the_eval_cell_at_the_tight_budget(monkeypatch, capsys):
                    for name in lines)
 
 
-def test_tight_without_eval_is_an_error():
-    done = subprocess.run([sys.executable, str(SCRIPT), "--tight"], capture_output=True,
-                          text=True, timeout=120)
+def test_tight_without_eval_is_an_error(capsys):
+    done = run_script(capsys, "--tight")
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip() == ("error: --tight: allowed only with --eval (it sets the "
                                    "--eval cell's budget)")
