@@ -30,6 +30,8 @@ Preset `default` is our world (the protocol_table1 preset, configs/protocol_tabl
     quality.recipe_seeds             with several policies of one recipe: how many
     quality.recipe_mean_pct          ... the mean over them of their rho = inf figures
     quality.recipe_std_pct           ... and the standard deviation (ddof 1)
+    quality.recipe_median            ... the folder of the median one (the upper middle of
+                                     an even count): the seed to ship
 
 and quality.command and quality.rules (the preset, its overrides, the policies, the
 worlds, trials and seed), which `python -m jaxmripp.ship` records beside the figures.
@@ -176,6 +178,8 @@ def main(argv=None) -> int:
             emit("quality.recipe_seeds", len(seeds), "policies")
             emit("quality.recipe_mean_pct", float(seeds.mean()), "%")
             emit("quality.recipe_std_pct", float(seeds.std(ddof=1)), "%")
+            median = int(np.argsort(seeds, kind="stable")[len(seeds) // 2])
+            emit_text("quality.recipe_median", str(policy_dirs[median]))
         minutes = folders.train_minutes(policy_dirs[0])
         if minutes is not None:
             emit("quality.train_minutes", minutes, "min")

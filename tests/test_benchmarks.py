@@ -82,3 +82,39 @@ def test_quality_refuses_a_sweep_without_the_planners_of_its_figures():
     assert len(error) == 1 and error[0].startswith("error: overrides:"), error
     assert "nbv_ahead, nbv_team, coordinated, greedy, mcts, rig, random" in error[0]
     assert done.stdout == ""
+
+
+def test_quality_seed_statistics_name_the_median_seed(monkeypatch, capsys):
+    """With --seeds, the recipe's mean, std (ddof 1) and the median seed's folder come from
+    each policy's own rho = inf episodes (a sweep faked here: the figures are arithmetic on
+    what it returns)."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from jaxmripp import pipeline
+    from jaxmripp.evaluation import sweep
+
+    spec = importlib.util.spec_from_file_location("quality_benchmark",
+                                                  ROOT / "benchmarks" / "quality.py")
+    quality = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(quality)
+    seeds = [ROOT / "pretrained" / name for name in ("default", "default_fast", "paper")]
+    found = {"policy": [90.0, 94.0], "policy_2": [80.0, 84.0], "policy_3": [95.0, 97.0]}
+    runs = [SimpleNamespace(planner=name, shape=SimpleNamespace(radio_range=rho), worlds=2,
+                            discovered=np.asarray(pct) - (rho != math.inf),
+                            safety={"obstacle_collisions": np.zeros(2),
+                                    "robot_collisions_in_range": np.zeros(2)})
+            for name, pct in found.items() for rho in (math.inf, 0.1)]
+    monkeypatch.setattr(pipeline, "with_policy_inputs", lambda cfg, dirs: cfg)
+    monkeypatch.setattr(pipeline, "sweep_planner", lambda folder, cfg, name, log: name)
+    monkeypatch.setattr(sweep, "run_sweep", lambda cfg, policies, **_: SimpleNamespace(runs=runs))
+    assert quality.main(["--seeds", *map(str, seeds), "--planners", "policy"]) == 0
+    lines = {r["name"]: r["value"] for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    means = [92.0, 82.0, 96.0]
+    assert lines["quality.recipe_seeds"] == 3
+    assert lines["quality.recipe_mean_pct"] == pytest.approx(90.0)
+    assert lines["quality.recipe_std_pct"] == pytest.approx(np.std(means, ddof=1), abs=1e-4)
+    assert lines["quality.recipe_median"] == str(seeds[0])  # 92 between 82 and 96
+    assert lines["quality.policy_pct"] == pytest.approx(92.0)
+    assert lines["quality.pct.policy_3.rho0.1"] == pytest.approx(95.0)
