@@ -3,7 +3,6 @@ each exits cleanly and prints the figures it promises as finite JSON lines. They
 the simulator directly, so a changed signature there breaks them without failing any other
 test."""
 
-import importlib.util
 import json
 import math
 import os
@@ -12,6 +11,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY_BATCH = ["--envs", "4", "--size", "20", "--repeats", "1"]
@@ -56,9 +56,7 @@ def test_each_line_names_the_machine_by_vendor_and_family():
     """The machine each figure names, from /proc/cpuinfo model names of the kinds the
     README's figures come from; `benchmarks/figures.py` imports only the standard library,
     so it is loaded here directly."""
-    spec = importlib.util.spec_from_file_location("figures", ROOT / "benchmarks" / "figures.py")
-    figures = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(figures)
+    figures = load_script("benchmarks/figures.py")
     assert figures.cpu_family("Intel(R) Xeon(R) Processor") == "Intel Xeon"
     assert figures.cpu_family("AMD EPYC 7R13 Processor") == "AMD EPYC"
     assert figures.cpu_family("Intel(R) Core(TM) i7-8700 CPU @ 3.20GHz") == "Intel Core"
@@ -95,10 +93,7 @@ def test_quality_seed_statistics_name_the_median_seed(monkeypatch, capsys):
     from jaxmripp import pipeline
     from jaxmripp.evaluation import sweep
 
-    spec = importlib.util.spec_from_file_location("quality_benchmark",
-                                                  ROOT / "benchmarks" / "quality.py")
-    quality = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(quality)
+    quality = load_script("benchmarks/quality.py")
     seeds = [ROOT / "pretrained" / name for name in ("default", "default_fast", "paper")]
     found = {"policy": [90.0, 94.0], "policy_2": [80.0, 84.0], "policy_3": [95.0, 97.0]}
     runs = [SimpleNamespace(planner=name, shape=SimpleNamespace(radio_range=rho), worlds=2,

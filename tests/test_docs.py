@@ -3,17 +3,15 @@ result files, and `--check` fails on any that differs."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 from pathlib import Path
 
 import pytest
+from scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
-_spec = importlib.util.spec_from_file_location("render", ROOT / "docs" / "render.py")
-render = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(render)
+render = load_script("docs/render.py")
 
 RESULTS = "docs/results/default/quality.jsonl"
 

@@ -1,7 +1,6 @@
 """benchmarks/generalize.py: its 12 cells are the settings the issue of record names, on
 seeds no other protocol uses, and bad arguments are one error line."""
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -9,16 +8,14 @@ import sys
 from pathlib import Path
 
 import pytest
+from scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def _module():
     sys.path.insert(0, str(ROOT / "benchmarks"))
-    spec = importlib.util.spec_from_file_location("generalize", ROOT / "benchmarks" / "generalize.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+    return load_script("benchmarks/generalize.py")
 
 
 def test_cells_shift_the_table_i_setting_as_named():

@@ -2,7 +2,6 @@
 and, slow, the --eval cell's figures and curves."""
 
 import functools
-import importlib.util
 import json
 import math
 import subprocess
@@ -12,6 +11,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+from scripts import load_script
 from scipy import stats
 
 SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
@@ -19,10 +19,7 @@ SCRIPT = Path(__file__).resolve().parents[1] / "benchmarks" / "scale.py"
 
 @functools.cache
 def _scale_module():
-    spec = importlib.util.spec_from_file_location("scale_benchmark", SCRIPT)
-    scale = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(scale)
-    return scale
+    return load_script("benchmarks/scale.py")
 
 
 def run_script(capsys, *argv: str) -> SimpleNamespace:
