@@ -111,11 +111,18 @@ def summary_table(root: Path, path: str, *planners: str) -> list[str]:
 HEADLINES = ("quality.policy_pct", "scale.pct.policy.relay")
 
 
+_SEED_NAME = re.compile(r"policy(_\d+)?")
+
+
 def seeds_line(root: Path, path: str, rho: str = "inf") -> list[str]:
     """The mean +- standard deviation (ddof 1) over training seeds of an evaluation
-    summary.json whose planners are one recipe's seeds, at radio range `rho`."""
+    summary.json at radio range `rho`: its policies (`policy`, `policy_2`, ... as
+    benchmarks/quality.py --seeds names one recipe's seeds) when the sweep also ran
+    planners, else every planner of it (sweeps of seeds alone may name them s0, s1, ...)."""
     rows = [r for r in json.loads((root / path).read_text())["summary"]
             if _rho(r["radio_range"]) == rho]
+    if any(_SEED_NAME.fullmatch(r["planner"]) for r in rows):
+        rows = [r for r in rows if _SEED_NAME.fullmatch(r["planner"])]
     if len(rows) < 2:
         raise RenderError(f"{path}: {len(rows)} seeds at rho = {rho}; allowed: 2 or more")
     means = [float(r["mean"]) for r in rows]

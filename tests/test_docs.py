@@ -112,3 +112,13 @@ def test_the_seed_line_is_the_mean_and_sample_std_of_the_seeds():
                            f"over {len(means)} training seeds")
     with pytest.raises(render.RenderError, match="0 seeds"):
         render.seeds_line(ROOT, path, "0.3")
+
+
+def test_the_seed_line_reads_only_the_seeds_of_a_sweep_with_planners(tmp_path):
+    rows = [{"planner": name, "radio_range": "inf", "mean": mean}
+            for name, mean in (("policy", 90.0), ("nbv_targets", 99.0), ("policy_2", 92.0),
+                               ("policy_extra", 10.0), ("policy_3", 94.0))]
+    (tmp_path / "summary.json").write_text(json.dumps({"summary": rows}))
+    line = render.seeds_line(tmp_path, "summary.json", "inf")[0]
+    assert line.startswith("**92.00 +- 2.00** over 3 training seeds at rho = inf "
+                           "(policy 90.00, policy_2 92.00, policy_3 94.00;")
