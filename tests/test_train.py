@@ -276,9 +276,9 @@ def _taught_rollout(overrides):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("teacher", ["nbv_ahead", "oracle_rate"])
+@pytest.mark.parametrize("teacher", ["nbv_ahead", "oracle_rate", "oracle_city"])
 def test_a_planner_teacher_is_stored_by_the_rollout_while_its_weight_lasts(teacher):
-    """ppo.teacher = nbv_ahead (or the privileged oracle_rate): the transitions carry that
+    """ppo.teacher = nbv_ahead (or the privileged oracle_rate, oracle_city): the transitions carry that
     planner's choices, feasible on the observations, and some differ from the one-step NBV
     choice; with the weight at 0 the rollout skips the planner and stores NO_CHOICE."""
     run, cfg = _taught_rollout([f"ppo.teacher={teacher}"])

@@ -116,7 +116,7 @@ RULES: dict[str, tuple] = {
     "ppo.max_grad_norm": _POSITIVE,
     "ppo.teacher_coef": _NONNEG,
     "ppo.teacher_updates": _NONNEG,
-    "ppo.teacher": _choice("nbv", "nbv_ahead", "nbv_targets", "oracle_rate"),
+    "ppo.teacher": _choice("nbv", "nbv_ahead", "nbv_targets", "oracle_rate", "oracle_city"),
     "ppo.teacher_facade": _NONNEG,
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),

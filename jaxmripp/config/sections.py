@@ -171,7 +171,8 @@ class PPOConfig:
     teacher_updates: int = 0  # > 0: the weight falls linearly to 0 over these updates
     # whose choices: nbv (the score on the observation, as above), nbv_ahead or
     # nbv_targets (those baselines' choices with their eval.* settings, computed in the
-    # rollouts) or oracle_rate (nbv_targets with the true rates: a privileged teacher)
+    # rollouts), oracle_rate (nbv_targets with the true rates) or oracle_city (one flight on
+    # the true geometry with the true rates): privileged teachers, training only
     teacher: str = "nbv"
     # the weight of unknown facade voxels in the teacher's score; nbv_team's tuned weight
     # by default (a training setting, chosen by the trained policies on training layouts)

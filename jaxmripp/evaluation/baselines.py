@@ -134,21 +134,13 @@ def coordinated_planner(params, kappa: float = 0.3, lam: float = 0.0, mu: float 
     return Planner(name, no_memory, act)
 
 
-def _view_tie(key, obs: Observation) -> jax.Array:
-    """(N, L) tie-break scores for the window oracles: nbv_team's view score (facade
-    weight 2) squashed below 0.1, under one window per unit of cost
-    (`jaxmripp.sim.oracle`), plus a jitter."""
-    jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
-    return 0.1 * jnp.tanh(layout.nbv_score(obs.features, 2.0)) + jitter
-
-
 def oracle_planner(params, name: str = "oracle") -> Planner:
     """Sequential greedy on the ground truth, windows per unit of flight cost
     (`jaxmripp.sim.oracle.choose_in_turn`): an upper reference, not a fair planner.
     Every robot sees what all robots before it chose, whatever the radio's range. Ties
     (e.g. nothing in view) are broken by the next-best-view score."""
     def act(key, memory, obs, state, dyn=None):
-        return memory, oracle.choose_in_turn(obs.mask, state, params, _view_tie(key, obs),
+        return memory, oracle.choose_in_turn(obs.mask, state, params, oracle.view_tie(key, obs),
                                              per_cost=True)
 
     return Planner(name, no_memory, act)
@@ -164,7 +156,7 @@ def oracle_ahead_planner(params, discount=3.0, branches: int = 8,
     def act(key, memory, obs, state, dyn):
         key_tie, key_ahead = jax.random.split(key)
         return memory, oracle.choose_ahead(key_ahead, obs.mask, state, dyn, params,
-                                           _view_tie(key_tie, obs), discount, branches)
+                                           oracle.view_tie(key_tie, obs), discount, branches)
 
     return Planner(name, no_memory, act)
 
@@ -250,6 +242,6 @@ def oracle_city_planner(params, name: str = "oracle_city") -> Planner:
 
     def act(key, memory, obs, state, dyn=None):
         return memory, oracle.choose_city_in_turn(obs.mask, state, params,
-                                                  _view_tie(key, obs), true_rates(state))
+                                                  oracle.view_tie(key, obs), true_rates(state))
 
     return Planner(name, no_memory, act)

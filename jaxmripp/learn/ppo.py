@@ -22,7 +22,7 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from jaxmripp.sim import belief, env as envmod, lookahead, privileged
+from jaxmripp.sim import belief, env as envmod, lookahead, oracle, privileged
 from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
@@ -220,10 +220,13 @@ def _teacher(cfg: Config, params: EnvParams):
         return lambda key, obs, state, dyn: lookahead.choose_in_turn(
             key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_ahead_discount,
             e.nbv_ahead_branches, e.nbv_ahead_flights)
-    # The target belief's rates (nbv_targets) or the truth's (oracle_rate: a privileged
-    # teacher that knows how many windows each building has left, never where).
+    # The target belief's rates (nbv_targets) or the truth's (oracle_rate and oracle_city:
+    # privileged teachers that know how many windows each building has left, never where).
     rates = belief.rates_for("belief" if cfg.ppo.teacher == "nbv_targets" else "truth",
                              e.nbv_targets_strength, params.sensor, params.world)
+    if cfg.ppo.teacher == "oracle_city":  # one flight, on the true city's geometry
+        return lambda key, obs, state, dyn: oracle.choose_city_in_turn(
+            obs.mask, state, params, oracle.view_tie(key, obs), rates(state))
     return lambda key, obs, state, dyn: lookahead.choose_in_turn(
         key, obs, state, dyn, params, cfg.ppo.teacher_facade, e.nbv_targets_discount,
         e.nbv_targets_branches, e.nbv_ahead_flights, rates=rates(state))

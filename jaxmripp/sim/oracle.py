@@ -25,9 +25,17 @@ import jax.numpy as jnp
 
 from jaxmripp.sim import belief, comms, lookahead, sensing, view
 from jaxmripp.sim.geometry import UNKNOWN
+from jaxmripp.sim.observation import Observation
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.types import EnvState
 from jaxmripp.spec import belief as belief_spec, layout
+
+
+def view_tie(key, obs: Observation) -> jax.Array:
+    """(N, L) tie-break scores for the window oracles: nbv_team's view score (facade
+    weight 2) squashed below 0.1, under one window per unit of cost, plus a jitter."""
+    jitter = 1e-4 * jax.random.uniform(key, obs.mask.shape)
+    return 0.1 * jnp.tanh(layout.nbv_score(obs.features, 2.0)) + jitter
 
 
 def _seen_from(state: EnvState, params: EnvParams):
