@@ -194,12 +194,18 @@ def _episodes_with_ahead(setting: str):
     def episode(key):
         key_reset, key_steps = jax.random.split(key)
         obs, state = envmod.reset(key_reset, params, dyn)
-        keys = jax.random.split(key_steps, AHEAD_STEPS)
-        for t in range(AHEAD_STEPS):
-            key_pick, key_step = jax.random.split(keys[t])
+
+        def flight(carry, key):
+            obs, state, _ = carry
+            key_pick, key_step = jax.random.split(key)
             scores = jax.random.uniform(key_pick, obs.mask.shape)
             actions = layout.masked_argmax(scores, obs.mask, jnp).astype(jnp.int32)
             obs, state, *_ = envmod.step(key_step, state, actions, params, dyn)
+            return (obs, state, key_step), None
+
+        # A scan, not a Python loop: the step compiles once, not once per flight.
+        (obs, state, key_step), _ = jax.lax.scan(
+            flight, (obs, state, key_steps), jax.random.split(key_steps, AHEAD_STEPS))
         return obs, state, key_step
 
     return cfg, jax.jit(jax.vmap(episode))
