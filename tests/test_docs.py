@@ -122,3 +122,21 @@ def test_the_seed_line_reads_only_the_seeds_of_a_sweep_with_planners(tmp_path):
     line = render.seeds_line(tmp_path, "summary.json", "inf")[0]
     assert line.startswith("**92.00 +- 2.00** over 3 training seeds at rho = inf "
                            "(policy 90.00, policy_2 92.00, policy_3 94.00;")
+
+
+def test_each_alternative_reads_its_figures_from_the_result_file_it_names():
+    """A row of docs/results/alternatives.jsonl whose source is a result file of figures
+    gives its % as one of that file's figures, to the two decimals the table shows."""
+    rows = [json.loads(line) for line in
+            (ROOT / "docs/results/alternatives.jsonl").read_text().splitlines() if line.strip()]
+    checked = 0
+    for row in rows:
+        source = ROOT / row["source"]
+        if source.suffix != ".jsonl":  # a document at a commit: its figure is in its prose
+            continue
+        assert source.is_file(), row["source"]
+        figures = {round(r["value"], 2) for r in map(json.loads, source.read_text().splitlines())
+                   if isinstance(r.get("value"), (int, float))}
+        assert round(row["pct"], 2) in figures, (row["setting"], row["pct"], row["source"])
+        checked += 1
+    assert checked >= 19
