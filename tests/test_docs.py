@@ -135,7 +135,7 @@ def test_each_alternative_reads_its_figures_from_the_result_file_it_names():
         if source.suffix != ".jsonl":  # a document at a commit: its figure is in its prose
             continue
         assert source.is_file(), row["source"]
-        figures = {round(r["value"], 2) for r in map(json.loads, source.read_text().splitlines())
+        figures = {round(r["value"], 2) for r in render._json_lines(source).values()
                    if isinstance(r.get("value"), (int, float))}
         assert round(row["pct"], 2) in figures, (row["setting"], row["pct"], row["source"])
         checked += 1
