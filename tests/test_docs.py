@@ -4,7 +4,9 @@ result files, and `--check` fails on any that differs."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
+import subprocess
 from pathlib import Path
 
 import pytest
@@ -124,19 +126,78 @@ def test_the_seed_line_reads_only_the_seeds_of_a_sweep_with_planners(tmp_path):
                            "(policy 90.00, policy_2 92.00, policy_3 94.00;")
 
 
-def test_each_alternative_reads_its_figures_from_the_result_file_it_names():
-    """A row of docs/results/alternatives.jsonl whose source is a result file of figures
-    gives its % as one of that file's figures, to the two decimals the table shows."""
-    rows = [json.loads(line) for line in
-            (ROOT / "docs/results/alternatives.jsonl").read_text().splitlines() if line.strip()]
+ALTERNATIVES = [json.loads(line) for line in
+                (ROOT / "docs/results/alternatives.jsonl").read_text().splitlines()
+                if line.strip()]
+
+
+def _figures(source: str) -> str:
+    """The text a row's source gives its figures in: a document's (`path` in the tree, or
+    `path@commit, section` as it read at that commit), a result file's figures to the two
+    decimals the tables show (JSON lines or a JSON document), and for an evaluation
+    summary.json also its seeds' mean as docs/render.py's seed line writes it."""
+    path, at, rest = source.partition("@")
+    if at:
+        commit = rest.split(",")[0].strip()
+        shown = subprocess.run(["git", "-C", str(ROOT), "show", f"{commit}:{path}"],
+                               capture_output=True, text=True)
+        assert shown.returncode == 0, (source, shown.stderr)
+        return shown.stdout
+    file = ROOT / path
+    assert file.is_file(), source
+    if file.suffix == ".jsonl":
+        return " ".join(f"{r['value']:.2f}" for r in render._json_lines(file).values()
+                        if isinstance(r.get("value"), (int, float)))
+    if file.suffix == ".json":
+        def numbers(node):
+            if isinstance(node, dict):
+                node = list(node.values())
+            if isinstance(node, list):
+                return [x for item in node for x in numbers(item)]
+            is_number = isinstance(node, (int, float)) and not isinstance(node, bool)
+            return [f"{node:.2f}"] if is_number else []
+        data = json.loads(file.read_text())
+        seeds = [render.seeds_line(ROOT, path, rho)[0] for rho in ("inf", "0.1")
+                 if isinstance(data, dict) and "summary" in data]
+        return " ".join(numbers(data) + seeds)
+    return file.read_text()
+
+
+def _holds(text: str, value: float) -> bool:
+    """Whether `text` writes `value` to two decimals as a number of its own."""
+    return re.search(rf"(?<![\d.]){value:.2f}(?![\d])", text) is not None
+
+
+def _at_commit(source: str) -> bool:
+    return "@" in source.partition(",")[0]
+
+
+@pytest.mark.parametrize("which", ["result files", "documents at a commit"])
+def test_each_alternative_reads_both_its_figures_from_the_sources_it_names(which):
+    """A row of docs/results/alternatives.jsonl gives its % as a figure of `source` and the
+    % it is compared with as a figure of `reference_source`: a result file's figure to the
+    two decimals the table shows, or the same two decimals in a document's text (at the
+    commit the row names, from the repository's history)."""
+    wanted = which == "documents at a commit"
+    if wanted and subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--verify", "-q",
+                                  "f5af2ce^{commit}"], capture_output=True).returncode:
+        pytest.skip("the repository's history is not available")
     checked = 0
-    for row in rows:
-        source = ROOT / row["source"]
-        if source.suffix != ".jsonl":  # a document at a commit: its figure is in its prose
-            continue
-        assert source.is_file(), row["source"]
-        figures = {round(r["value"], 2) for r in render._json_lines(source).values()
-                   if isinstance(r.get("value"), (int, float))}
-        assert round(row["pct"], 2) in figures, (row["setting"], row["pct"], row["source"])
-        checked += 1
-    assert checked >= 19
+    for row in ALTERNATIVES:
+        for figure, source in ((row["pct"], row["source"]),
+                               (row["reference_pct"], row["reference_source"])):
+            if _at_commit(source) == wanted:
+                assert _holds(_figures(source), figure), (row["setting"], figure, source)
+                checked += 1
+    assert checked >= (190 if wanted else 50)
+
+
+def test_a_figure_missing_from_its_source_is_caught():
+    """The check above fails for a figure its file does not hold."""
+    figures = _figures("docs/results/paper/quality.jsonl")
+    best = render.lookup(ROOT, "docs/results/paper/quality.jsonl", "quality.best_baseline_pct")
+    assert _holds(figures, best) and not _holds(figures, best + 0.01)
+    assert _holds("found 93.57 %", 93.57) and not _holds("found 93.58 %", 93.57)
+    assert not _holds("found 193.57 % or 93.575", 93.57)  # a number of its own, whole
+    seeds = _figures("docs/results/recipe_belief/summary.json")
+    assert _holds(seeds, 54.44) and not _holds(seeds, 54.45)  # the seeds' mean
