@@ -129,7 +129,7 @@ def main(argv=None) -> int | None:
         return envmod.team_candidates(key, s, comms.contacts(s.position, d.radio_range), p, d)
 
     def view_gain_part(s):
-        return view.team_view_gain(s.team_map, s.building_top,
+        return view.team_view_gain(s.team_map, s.view_top,
                                    s.candidates.position[:, ::geometry.N_HEADINGS],
                                    s.position, p.sensor, p.size)
 

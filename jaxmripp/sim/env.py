@@ -52,6 +52,7 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         done=jnp.zeros((n,), bool),
         team_map=maps.empty(world.height, n),
         building_top=jnp.broadcast_to(tops.empty_tops(size), (n, size, size)),
+        view_top=jnp.broadcast_to(tops.empty_tops(size), (n, size, size)),
         heard=jnp.zeros((n, n), bool),
         discovered=jnp.zeros(world.target_valid.shape, bool),
         history_pose=jnp.zeros((n, history, 4), jnp.float32),
@@ -188,8 +189,10 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     know = comms.exchange(know, contact, params.radio.relay)
     if params.radio.share_maps:
         team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
-    state = state.replace(team_map=team_map, building_top=top, heard=contact,
-                          discovered=discovered, history_pose=history_pose,
+    view_top = top if params.sensor.gain_tops == "mapped" else jax.vmap(
+        tops.box_tops, in_axes=(0, None))(maps.robot_maps(team_map, n), params.box_side)
+    state = state.replace(team_map=team_map, building_top=top, view_top=view_top,
+                          heard=contact, discovered=discovered, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(
                               contacts=state.metrics.contacts + contact.sum() // 2))

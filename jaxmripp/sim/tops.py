@@ -1,6 +1,7 @@
 """Building tops (`jaxmripp.spec.view`): per robot and column, 1 + the highest z its map
-holds OCCUPIED, and the facade tops they give (`sensor.gain_facade`) that mark which
-unknown voxels the view gain counts as facade. The NumPy side is in
+holds OCCUPIED, the box tops that complete them to whole footprints
+(`sensor.gain_tops=boxes`), and the facade tops they give (`sensor.gain_facade`) that
+mark which unknown voxels the view gain counts as facade. The NumPy side is in
 `jaxmripp.runtime.view`."""
 
 from __future__ import annotations
@@ -9,7 +10,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxmripp.config import SensorConfig
-from jaxmripp.sim.geometry import OCCUPIED
+from jaxmripp.sim.geometry import FREE, OCCUPIED
 from jaxmripp.sim.sensing import CastResult, scatter_max
 
 
@@ -32,6 +33,25 @@ def raise_tops(top: jax.Array, voxels: jax.Array, values: jax.Array) -> jax.Arra
 def raise_tops_from_cast(top: jax.Array, cast: CastResult) -> jax.Array:
     """`raise_tops` with a cast's observed voxels and codes."""
     return raise_tops(top, cast.voxels, cast.values)
+
+
+def box_tops(codes: jax.Array, side: int) -> jax.Array:
+    """(G, G, G) int8 map codes -> (G, G) int8 its box tops (`jaxmripp.spec.view`) for
+    boxes of `side` x `side` columns, computed from the codes alone."""
+    size = codes.shape[0]
+    z = jnp.arange(size, dtype=jnp.int32)
+    top = jnp.max(jnp.where(codes == OCCUPIED, z + 1, 0), axis=-1)
+    lowest_free = jnp.min(jnp.where(codes == FREE, z, size), axis=-1)
+    box = (side, side)
+    # Per box, indexed by its low corner: its highest top, and whether it is possible.
+    box_top = jax.lax.reduce_window(top, 0, jax.lax.max, box, (1, 1), "VALID")
+    box_free = jax.lax.reduce_window(lowest_free, size, jax.lax.min, box, (1, 1), "VALID")
+    possible = jnp.where((box_top > 0) & (box_free >= box_top), box_top, 0)
+    # Per column, the largest over the boxes that hold it: those whose low corner lies
+    # within side - 1 below it on both axes.
+    spread = jax.lax.reduce_window(jnp.pad(possible, side - 1), 0, jax.lax.max, box, (1, 1),
+                                   "VALID")
+    return jnp.maximum(top, spread).astype(jnp.int8)
 
 
 def _shifted_max(top: jax.Array, axis: int) -> jax.Array:

@@ -1,0 +1,117 @@
+"""Box tops (`sensor.gain_tops=boxes`, `jaxmripp.spec.view`): the JAX rule
+(`jaxmripp.sim.tops.box_tops`) and the runtime's (`jaxmripp.runtime.view.box_tops`)
+against a reference that walks the written rule box by box, on random maps and on a
+building seen from one side; the env keeps its map's tops and hands the box tops to the
+view gain."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp import config
+from jaxmripp.runtime import view as runtime_view
+from jaxmripp.sim import env as envmod, tops
+from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def reference(codes: np.ndarray, side: int) -> np.ndarray:
+    """The spec's rule, one box and one column at a time."""
+    size = codes.shape[0]
+    top = np.zeros((size, size), int)
+    lowest_free = np.full((size, size), size)
+    for x in range(size):
+        for y in range(size):
+            occupied = np.flatnonzero(codes[x, y] == OCCUPIED)
+            free = np.flatnonzero(codes[x, y] == FREE)
+            top[x, y] = occupied.max() + 1 if len(occupied) else 0
+            lowest_free[x, y] = free.min() if len(free) else size
+    completed = top.copy()
+    for x in range(size - side + 1):
+        for y in range(size - side + 1):
+            box = (slice(x, x + side), slice(y, y + side))
+            highest = top[box].max()
+            if highest > 0 and np.all(lowest_free[box] >= highest):
+                completed[box] = np.maximum(completed[box], highest)
+    return completed
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_both_sides_follow_the_written_rule_on_random_maps(seed):
+    rng = np.random.default_rng(seed)
+    for _ in range(12):
+        size, side = int(rng.integers(4, 12)), int(rng.integers(1, 5))
+        codes = rng.choice(np.array([FREE, UNKNOWN, OCCUPIED], np.int8), size=(size,) * 3,
+                           p=rng.dirichlet([1.0, 1.0, 1.0]))
+        want = reference(codes, side)
+        np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), side)),
+                                      want)
+        np.testing.assert_array_equal(runtime_view.box_tops(codes.reshape(-1), size, side),
+                                      want)
+
+
+def _one_column_seen(size=12, height=4):
+    """A map that knows one column (5, 5) of a building up to z = height - 1 and the
+    columns x = 4 and y = 4 free at every height."""
+    codes = np.full((size,) * 3, UNKNOWN, np.int8)
+    codes[5, 5, :height] = OCCUPIED
+    codes[4], codes[:, 4] = FREE, FREE
+    return codes
+
+
+def test_a_column_seen_from_a_corner_completes_the_one_box_it_allows():
+    codes = _one_column_seen()
+    want = np.zeros((12, 12), np.int8)
+    want[5:8, 5:8] = 4
+    np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), 3)), want)
+    # Free above the known top does not rule a column out; free below it does, and then
+    # the box tops fall to what the boxes left allow.
+    codes[7, 7, 4:] = FREE
+    np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), 3)), want)
+    codes[7, 7, 2] = FREE
+    fallen = np.asarray(tops.box_tops(jnp.asarray(codes), 3))
+    assert fallen[5, 5] == 4 and fallen[7, 7] == 0 and fallen.sum() < want.sum()
+    np.testing.assert_array_equal(fallen, reference(codes, 3))
+
+
+def test_the_env_keeps_its_maps_tops_and_the_gain_reads_the_box_tops():
+    """Reset from one key: the maps and the map's tops are the same with either setting,
+    and view_top is the map's tops, or the box tops of each robot's map."""
+    key = jax.random.key(5)
+    states = {}
+    for setting in ("mapped", "boxes"):
+        cfg = config.load(ROOT / "tests" / "smoke.yaml", [f"sensor.gain_tops={setting}"])
+        params, dyn = envmod.EnvParams.from_config(cfg), envmod.DynamicParams.from_config(cfg)
+        states[setting] = jax.jit(lambda k, p=params, d=dyn: envmod.reset(k, p, d)[1])(key)
+    mapped, boxes = states["mapped"], states["boxes"]
+    np.testing.assert_array_equal(mapped.team_map, boxes.team_map)
+    np.testing.assert_array_equal(mapped.building_top, boxes.building_top)
+    np.testing.assert_array_equal(mapped.view_top, mapped.building_top)
+    side = cfg.world.footprint_min or cfg.world.footprint
+    for i, codes in enumerate(np.asarray(boxes.occupancy)):
+        np.testing.assert_array_equal(boxes.view_top[i], reference(codes, side))
+    assert np.any(boxes.building_top > 0)  # the robots start seeing some building
+
+
+def test_an_export_carries_the_box_side_and_the_runtime_needs_it():
+    from jaxmripp import export
+    from jaxmripp.runtime import weights
+    from jaxmripp.runtime.errors import WeightsFormatError
+
+    cfg = config.load(ROOT / "tests" / "smoke.yaml",
+                      ["sensor.gain_tops=boxes", "world.footprint=4", "world.footprint_min=2"])
+    spec = export.runtime_spec(cfg)
+    assert (spec.gain.tops, spec.gain.box_side) == ("boxes", 2)  # the smallest footprint
+    head = weights.jsonable(export.header(cfg))
+    del head["config"]["world"]["box_side"]
+    with pytest.raises(WeightsFormatError, match="world.*box_side"):
+        weights.RuntimeSpec.from_header(head)
+    mapped = config.load(ROOT / "tests" / "smoke.yaml")
+    assert "box_side" not in export.header(mapped)["config"]["world"]
+    assert export.runtime_spec(mapped).gain.tops == "mapped"
