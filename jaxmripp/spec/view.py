@@ -21,13 +21,13 @@ Box tops (`sensor.gain_tops=boxes`)
     top: the building holds a whole F x F box of columns around it. With `boxes` the view
     gain below (and so the lookahead and the claims, which are made of it) reads, instead
     of the map's tops t, the *box tops* computed afresh from the map at each decision (the
-    target belief's buildings stay the mapped columns, `jaxmripp.spec.belief`): with f(c) = the lowest z mapped FREE in column c (G when none),
-    an F x F box b of columns inside the grid is *possible* when its highest top
-    m(b) = max over c in b of t(c) is > 0 and every column of b has f(c) >= m(b) (a column
-    known free below m(b) stands outside that building); the box top of column c is the
-    largest of t(c) and m(b) over the possible boxes b that hold c. They are a function of
-    the map alone, so they need nothing sent; where a map learns that a column is free,
-    its box tops may fall.
+    target belief's buildings stay the mapped columns, `jaxmripp.spec.belief`). With f(c)
+    the lowest z mapped FREE in column c (G when none), an F x F box b of columns inside
+    the grid is *possible* when its highest top m(b) = max over c in b of t(c) is > 0 and
+    every column of b has f(c) >= m(b) (a column known free below m(b) stands outside that
+    building); the box top of column c is the largest of t(c) and m(b) over the possible
+    boxes b that hold c. They are a function of the map alone, so they need nothing sent;
+    where a map learns that a column is free, its box tops may fall.
 
 Samples
     A pose looks along its heading from the centre of its voxel c. The gain rays are a
