@@ -135,7 +135,8 @@ def main(argv=None) -> int | None:
 
     def share_maps_part(s, d):
         contact = comms.contacts(s.position, d.radio_range)
-        return comms.share_maps(s.team_map, s.building_top, contact, p.radio.relay)
+        return comms.share_maps(s.team_map, s.building_top, s.lowest_free, contact,
+                                p.radio.relay)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (simulation_jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),

@@ -27,7 +27,7 @@ Preset `default` is our world (the protocol_table1 preset, configs/protocol_tabl
     quality.collisions_per_episode   obstacle + in-range robot collisions, all planners
     quality.train_minutes            the policy's training time (its metrics.jsonl)
     quality.pct.<planner>.rho<r>     every planner and range
-    quality.recipe_seeds             with several policies of one recipe: how many
+    quality.recipe_seeds             with --seeds (policies of one recipe): how many
     quality.recipe_mean_pct          ... the mean over them of their rho = inf figures
     quality.recipe_std_pct           ... and the standard deviation (ddof 1)
     quality.recipe_median            ... the folder of the median one (the upper middle of
@@ -44,8 +44,9 @@ Usage (from the repository root):
                                  [--planners policy,...] [--out DIR] [--print-config]
                                  [section.key=value ...]
 --policy defaults to pretrained/<preset>; without one there, only the baselines run.
-Several policies (the training seeds of one recipe) run in one sweep as policy,
-policy_2, ...; the policy figures are the first one's.
+Several policies run in one sweep as policy, policy_2, ...; the policy figures are the
+first one's. Given with --seeds they are the training seeds of one recipe and the
+recipe_* lines summarise them; repeated --policy compares distinct policies.
 --out also writes the evaluation tables and plots (results.md, ...) there. The dotted
 overrides apply after the protocol's settings.
 """
@@ -81,9 +82,9 @@ def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
                             formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--policy", type=Path, action="append", default=[],
-                        help="default: pretrained/<preset>; repeat for several seeds")
+                        help="default: pretrained/<preset>; repeat to compare policies")
     parser.add_argument("--seeds", type=Path, nargs="+", default=[], metavar="DIR",
-                        help="policies of one recipe (same as repeating --policy)")
+                        help="the training seeds of one recipe (adds the recipe_* lines)")
     parser.add_argument("--preset", choices=sorted(PRESETS), default="default")
     parser.add_argument("--worlds", type=int, default=25)
     parser.add_argument("--trials", type=int, default=10)
@@ -96,6 +97,9 @@ def main(argv=None) -> int:
     given = args.policy + args.seeds
     for folder in given:  # a folder of another kind or a corrupt export fails here
         folders.policy(folder)
+    if args.policy and args.seeds:
+        parser.error("--policy / --seeds: give one of them; allowed: --policy DIR (repeated: "
+                     "distinct policies) or --seeds DIR DIR ... (one recipe's seeds)")
     if len(set(given)) < len(given):
         parser.error("--policy / --seeds: a folder is given twice; allowed: distinct policies")
     default = presets.in_checkout(Path("pretrained") / args.preset)
@@ -173,7 +177,7 @@ def main(argv=None) -> int:
                 round(x, 3) for x in test["ci"]],
                 p_wilcoxon=float(f"{test['p_wilcoxon']:.3g}"), dz=round(test["dz"], 3),
                 worlds=worlds)
-        if len(policy_dirs) > 1:
+        if len(args.seeds) > 1:
             seeds = np.array([pct[(name, math.inf)] for name in names])
             emit("quality.recipe_seeds", len(seeds), "policies")
             emit("quality.recipe_mean_pct", float(seeds.mean()), "%")

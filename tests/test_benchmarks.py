@@ -85,7 +85,8 @@ def test_quality_refuses_a_sweep_without_the_planners_of_its_figures():
 def test_quality_seed_statistics_name_the_median_seed(monkeypatch, capsys):
     """With --seeds, the recipe's mean, std (ddof 1) and the median seed's folder come from
     each policy's own rho = inf episodes (a sweep faked here: the figures are arithmetic on
-    what it returns)."""
+    what it returns); the same folders as repeated --policy are distinct policies, given
+    no recipe lines, and the two flags together are refused."""
     from types import SimpleNamespace
 
     import numpy as np
@@ -113,3 +114,14 @@ def test_quality_seed_statistics_name_the_median_seed(monkeypatch, capsys):
     assert lines["quality.recipe_median"] == str(seeds[0])  # 92 between 82 and 96
     assert lines["quality.policy_pct"] == pytest.approx(92.0)
     assert lines["quality.pct.policy_3.rho0.1"] == pytest.approx(95.0)
+    policies = [arg for seed in seeds for arg in ("--policy", str(seed))]
+    assert quality.main([*policies, "--planners", "policy"]) == 0
+    lines = {r["name"]: r["value"] for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    assert lines["quality.pct.policy_3.rho0.1"] == pytest.approx(95.0)
+    assert not [name for name in lines if name.startswith("quality.recipe_")]
+    with pytest.raises(SystemExit) as refused:
+        quality.main([*policies[:2], "--seeds", *map(str, seeds[1:]), "--planners", "policy"])
+    assert refused.value.code == 2
+    error = capsys.readouterr().err.strip().splitlines()
+    assert error == ["error: --policy / --seeds: give one of them; allowed: --policy DIR "
+                     "(repeated: distinct policies) or --seeds DIR DIR ... (one recipe's seeds)"]

@@ -1,21 +1,20 @@
 """Box tops (`sensor.gain_tops=boxes`, `jaxmripp.spec.view`): the JAX rule
 (`jaxmripp.sim.tops.box_tops`) and the runtime's (`jaxmripp.runtime.view.box_tops`)
 against a reference that walks the written rule box by box, on random maps and on a
-building seen from one side; the env keeps its map's tops and hands the box tops to the
-view gain."""
+building seen from one side; the env keeps each map's tops and lowest FREE z step by
+step and hands their box tops to the view gain."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxmripp import config
 from jaxmripp.runtime import view as runtime_view
-from jaxmripp.sim import env as envmod, tops
+from jaxmripp.sim import tops
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -42,6 +41,11 @@ def reference(codes: np.ndarray, side: int) -> np.ndarray:
     return completed
 
 
+def jax_box_tops(codes: np.ndarray, side: int) -> np.ndarray:
+    """The JAX box tops of a whole map, from its tops and lowest FREE z."""
+    return np.asarray(tops.box_tops(*tops.column_bounds(jnp.asarray(codes)), side))
+
+
 @pytest.mark.parametrize("seed", range(4))
 def test_both_sides_follow_the_written_rule_on_random_maps(seed):
     rng = np.random.default_rng(seed)
@@ -50,8 +54,7 @@ def test_both_sides_follow_the_written_rule_on_random_maps(seed):
         codes = rng.choice(np.array([FREE, UNKNOWN, OCCUPIED], np.int8), size=(size,) * 3,
                            p=rng.dirichlet([1.0, 1.0, 1.0]))
         want = reference(codes, side)
-        np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), side)),
-                                      want)
+        np.testing.assert_array_equal(jax_box_tops(codes, side), want)
         np.testing.assert_array_equal(runtime_view.box_tops(codes.reshape(-1), size, side),
                                       want)
 
@@ -69,34 +72,35 @@ def test_a_column_seen_from_a_corner_completes_the_one_box_it_allows():
     codes = _one_column_seen()
     want = np.zeros((12, 12), np.int8)
     want[5:8, 5:8] = 4
-    np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), 3)), want)
+    np.testing.assert_array_equal(jax_box_tops(codes, 3), want)
     # Free above the known top does not rule a column out; free below it does, and then
     # the box tops fall to what the boxes left allow.
     codes[7, 7, 4:] = FREE
-    np.testing.assert_array_equal(np.asarray(tops.box_tops(jnp.asarray(codes), 3)), want)
+    np.testing.assert_array_equal(jax_box_tops(codes, 3), want)
     codes[7, 7, 2] = FREE
-    fallen = np.asarray(tops.box_tops(jnp.asarray(codes), 3))
+    fallen = jax_box_tops(codes, 3)
     assert fallen[5, 5] == 4 and fallen[7, 7] == 0 and fallen.sum() < want.sum()
     np.testing.assert_array_equal(fallen, reference(codes, 3))
 
 
-def test_the_env_keeps_its_maps_tops_and_the_gain_reads_the_box_tops():
-    """Reset from one key: the maps and the map's tops are the same with either setting,
-    and view_top is the map's tops, or the box tops of each robot's map."""
-    key = jax.random.key(5)
-    states = {}
-    for setting in ("mapped", "boxes"):
-        cfg = config.load(ROOT / "tests" / "smoke.yaml", [f"sensor.gain_tops={setting}"])
-        params, dyn = envmod.EnvParams.from_config(cfg), envmod.DynamicParams.from_config(cfg)
-        states[setting] = jax.jit(lambda k, p=params, d=dyn: envmod.reset(k, p, d)[1])(key)
-    mapped, boxes = states["mapped"], states["boxes"]
-    np.testing.assert_array_equal(mapped.team_map, boxes.team_map)
-    np.testing.assert_array_equal(mapped.building_top, boxes.building_top)
-    np.testing.assert_array_equal(mapped.view_top, mapped.building_top)
+def test_the_env_keeps_each_maps_tops_and_the_gain_reads_their_box_tops():
+    """Episodes a few random flights in with box tops (the lookahead tests' episodes, so
+    they compile once for both files): the tops and lowest FREE z the env keeps step by
+    step (casts, bumps, shared maps) are those of each robot's whole map, and view_top is
+    the box tops of each robot's map."""
+    from test_lookahead import _run_episodes
+
+    cfg, (_, state, _) = _run_episodes("view", 3)
+    assert cfg.sensor.gain_tops == "boxes" and cfg.radio.share_maps
+    whole_top, whole_free = map(np.asarray, tops.column_bounds(state.occupancy))
+    np.testing.assert_array_equal(state.building_top, whole_top)
+    np.testing.assert_array_equal(state.lowest_free, whole_free)
     side = cfg.world.footprint_min or cfg.world.footprint
-    for i, codes in enumerate(np.asarray(boxes.occupancy)):
-        np.testing.assert_array_equal(boxes.view_top[i], reference(codes, side))
-    assert np.any(boxes.building_top > 0)  # the robots start seeing some building
+    maps = np.asarray(state.occupancy)
+    for e, i in np.ndindex(maps.shape[:2]):
+        np.testing.assert_array_equal(state.view_top[e, i], reference(maps[e, i], side))
+    assert np.any(whole_top > 0) and np.any(whole_free < cfg.world.size)
+    assert np.any(np.asarray(state.view_top) > whole_top)  # the boxes added columns
 
 
 def test_an_export_carries_the_box_side_and_the_runtime_needs_it():
