@@ -32,9 +32,16 @@ def _known_to_xla(flag: str) -> bool:
 
 
 _FLAGS = {"xla_backend_optimization_level": "0", "xla_cpu_use_fusion_emitters": "false"}
-for _name, _value in _FLAGS.items():
-    if _name not in os.environ.get("XLA_FLAGS", "") and _known_to_xla(f"--{_name}={_value}"):
-        os.environ["XLA_FLAGS"] = _with_flag(f"--{_name}={_value}")
+_UNSET = [f"--{name}={value}" for name, value in _FLAGS.items()
+          if name not in os.environ.get("XLA_FLAGS", "")]
+# One probe for all of them (each probe starts a process that imports jax); one at a time
+# only where a jaxlib does not know one.
+if _UNSET and _known_to_xla(" ".join(_UNSET)):
+    os.environ["XLA_FLAGS"] = _with_flag(" ".join(_UNSET))
+else:
+    for _flag in _UNSET:
+        if _known_to_xla(_flag):
+            os.environ["XLA_FLAGS"] = _with_flag(_flag)
 
 # An environment variable rather than jax.config, so the command-line runs the tests start
 # as subprocesses use the cache too.

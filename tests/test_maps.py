@@ -119,12 +119,18 @@ def test_team_map_updates_match_int8_maps_on_a_cast():
     from jaxmripp.sim import world
 
     size = 20
-    w = world.generate(jax.random.PRNGKey(4), WorldConfig(size=size, layout="random"))
-    position = jnp.asarray([[0.5, 0.5, 0.5], [0.2, 0.7, 0.4]], jnp.float32)
-    casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
-        w, position, jnp.asarray([0, 3]), SensorConfig(), size)
-    int8_maps = jax.vmap(update_occupancy)(
-        jnp.broadcast_to(empty_occupancy(size), (2, size, size, size)), casts)
+
+    @jax.jit  # one compilation rather than hundreds of operations dispatched one by one
+    def world_and_casts(key):
+        w = world.generate(key, WorldConfig(size=size, layout="random"))
+        position = jnp.asarray([[0.5, 0.5, 0.5], [0.2, 0.7, 0.4]], jnp.float32)
+        casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
+            w, position, jnp.asarray([0, 3]), SensorConfig(), size)
+        int8_maps = jax.vmap(update_occupancy)(
+            jnp.broadcast_to(empty_occupancy(size), (2, size, size, size)), casts)
+        return w, casts, int8_maps
+
+    w, casts, int8_maps = world_and_casts(jax.random.PRNGKey(4))
     # `observe` needs each robot's in-grid voxels distinct: a cast's are.
     for voxels in np.asarray(casts.voxels):
         inside = voxels[voxels < size**3]

@@ -361,6 +361,8 @@ def test_exported_policy_on_onboard_features_matches_flax(sim, tmp_path, sectors
     assert (narrowed >= 3) if sectors else (narrowed == 0)
 
 
+@pytest.mark.slow  # the escape rule of both sides is checked against each other in
+# test_runtime_flight and against the unsafe rule in test_candidates; this is the episode
 def test_robots_that_met_out_of_range_part_alike_with_escape():
     """safety.escape on both sides: robots that came within d_c while out of radio range
     (rho below the pads' spacing, d_c just under rho) are still offered the flights that

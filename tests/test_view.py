@@ -176,15 +176,17 @@ def test_team_gain_with_every_or_no_slot_away_and_robot_by_robot_beyond_flat_ind
     away = np.where(np.floor(position * G) == np.floor(origin_far[:, None] * G), 0.0, position)
     cases = [(away, origin_far), (np.broadcast_to(origin[:, None], position.shape), origin),
              (position, origin)]
+    team = jax.jit(view.team_view_gain, static_argnums=(4, 5))
     for pos, org in cases:
         expected = _robot_by_robot(occupancy, top, pos)
-        for g, e in zip(view.team_view_gain(team_map, top, pos, org, SENSOR, G), expected):
+        for g, e in zip(team(team_map, top, pos, org, SENSOR, G), expected):
             np.testing.assert_array_equal(np.asarray(g), e)
     # Where one flat index over all maps would overflow int32, robot by robot.
     monkeypatch.setattr(view, "_FLAT_LIMIT", G**3)
     view._team_gains.cache_clear()
     try:
-        for g, e in zip(view.team_view_gain(team_map, top, position, origin, SENSOR, G), want):
+        team = jax.jit(view.team_view_gain, static_argnums=(4, 5))  # traced anew
+        for g, e in zip(team(team_map, top, position, origin, SENSOR, G), want):
             np.testing.assert_array_equal(np.asarray(g), e)
     finally:
         view._team_gains.cache_clear()
