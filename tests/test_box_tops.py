@@ -8,29 +8,36 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 
 from jaxmripp import config
 from jaxmripp.runtime import view as runtime_view
-from jaxmripp.sim import tops
+from jaxmripp.sim import env as envmod, tops
 from jaxmripp.spec.grid import FREE, OCCUPIED, UNKNOWN
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def column_bounds(codes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(..., G, G, G) codes -> each column's top and lowest FREE z, one column at a time."""
+    size = codes.shape[-1]
+    top = np.zeros(codes.shape[:-1], np.int8)
+    lowest_free = np.full(codes.shape[:-1], size, np.int8)
+    for column in np.ndindex(codes.shape[:-1]):
+        occupied = np.flatnonzero(codes[column] == OCCUPIED)
+        free = np.flatnonzero(codes[column] == FREE)
+        top[column] = occupied.max() + 1 if len(occupied) else 0
+        lowest_free[column] = free.min() if len(free) else size
+    return top, lowest_free
+
+
 def reference(codes: np.ndarray, side: int) -> np.ndarray:
     """The spec's rule, one box and one column at a time."""
     size = codes.shape[0]
-    top = np.zeros((size, size), int)
-    lowest_free = np.full((size, size), size)
-    for x in range(size):
-        for y in range(size):
-            occupied = np.flatnonzero(codes[x, y] == OCCUPIED)
-            free = np.flatnonzero(codes[x, y] == FREE)
-            top[x, y] = occupied.max() + 1 if len(occupied) else 0
-            lowest_free[x, y] = free.min() if len(free) else size
+    top, lowest_free = column_bounds(codes)
     completed = top.copy()
     for x in range(size - side + 1):
         for y in range(size - side + 1):
@@ -43,7 +50,15 @@ def reference(codes: np.ndarray, side: int) -> np.ndarray:
 
 def jax_box_tops(codes: np.ndarray, side: int) -> np.ndarray:
     """The JAX box tops of a whole map, from its tops and lowest FREE z."""
-    return np.asarray(tops.box_tops(*tops.column_bounds(jnp.asarray(codes)), side))
+    return np.asarray(tops.box_tops(*map(jnp.asarray, column_bounds(codes)), side))
+
+
+def runtime_box_tops(codes: np.ndarray, side: int) -> np.ndarray:
+    """The runtime's box tops of a whole map: its tops (kept by the map: here read whole)
+    and the lowest FREE z it reads from the codes."""
+    size = codes.shape[0]
+    top, _ = column_bounds(codes)
+    return runtime_view.box_tops(top, runtime_view.lowest_free(codes.reshape(-1), size), side)
 
 
 @pytest.mark.parametrize("seed", range(4))
@@ -55,8 +70,7 @@ def test_both_sides_follow_the_written_rule_on_random_maps(seed):
                            p=rng.dirichlet([1.0, 1.0, 1.0]))
         want = reference(codes, side)
         np.testing.assert_array_equal(jax_box_tops(codes, side), want)
-        np.testing.assert_array_equal(runtime_view.box_tops(codes.reshape(-1), size, side),
-                                      want)
+        np.testing.assert_array_equal(runtime_box_tops(codes, side), want)
 
 
 def _one_column_seen(size=12, height=4):
@@ -92,7 +106,7 @@ def test_the_env_keeps_each_maps_tops_and_the_gain_reads_their_box_tops():
 
     cfg, (_, state, _) = _run_episodes("view", 3)
     assert cfg.sensor.gain_tops == "boxes" and cfg.radio.share_maps
-    whole_top, whole_free = map(np.asarray, tops.column_bounds(state.occupancy))
+    whole_top, whole_free = column_bounds(np.asarray(state.occupancy))
     np.testing.assert_array_equal(state.building_top, whole_top)
     np.testing.assert_array_equal(state.lowest_free, whole_free)
     side = cfg.world.footprint_min or cfg.world.footprint
@@ -101,6 +115,26 @@ def test_the_env_keeps_each_maps_tops_and_the_gain_reads_their_box_tops():
         np.testing.assert_array_equal(state.view_top[e, i], reference(maps[e, i], side))
     assert np.any(whole_top > 0) and np.any(whole_free < cfg.world.size)
     assert np.any(np.asarray(state.view_top) > whole_top)  # the boxes added columns
+
+
+def test_either_tops_give_the_same_maps_and_mapped_reads_the_maps_tops():
+    """Reset from one key with either setting (one compilation for both): the same maps,
+    tops and lowest FREE z; the gain reads the map's tops, or their box tops."""
+    key = jax.random.key(5)
+    configs = {setting: config.load(ROOT / "tests" / "smoke.yaml",
+                                    [f"sensor.gain_tops={setting}"])
+               for setting in ("mapped", "boxes")}
+    params = {s: (envmod.EnvParams.from_config(c), envmod.DynamicParams.from_config(c))
+              for s, c in configs.items()}
+    states = jax.jit(lambda k: {s: envmod.reset(k, *p)[1] for s, p in params.items()})(key)
+    mapped, boxes = states["mapped"], states["boxes"]
+    for field in ("team_map", "building_top", "lowest_free"):
+        np.testing.assert_array_equal(getattr(mapped, field), getattr(boxes, field))
+    np.testing.assert_array_equal(mapped.view_top, mapped.building_top)
+    side = configs["boxes"].world.footprint_min or configs["boxes"].world.footprint
+    for i, codes in enumerate(np.asarray(boxes.occupancy)):
+        np.testing.assert_array_equal(boxes.view_top[i], reference(codes, side))
+    assert np.any(boxes.building_top > 0)  # the robots start seeing some building
 
 
 def test_an_export_carries_the_box_side_and_the_runtime_needs_it():

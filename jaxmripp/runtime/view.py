@@ -64,31 +64,35 @@ def around_tops(top: np.ndarray) -> np.ndarray:
     return _neighbour_max(top, _SIDES + _CORNERS)
 
 
-def box_tops(codes: np.ndarray, size: int, side: int) -> np.ndarray:
-    """(G**3,) map codes -> (G, G) int8 the box tops of `jaxmripp.spec.view` for boxes of
-    `side` x `side` columns."""
+def lowest_free(codes: np.ndarray, size: int) -> np.ndarray:
+    """(G**3,) map codes -> (G, G) the lowest z mapped FREE per column (G where none)."""
     column = np.asarray(codes).reshape(size, size, size)
-    z = np.arange(size)
-    top = np.where(column == OCCUPIED, z + 1, 0).max(axis=-1)
-    lowest_free = np.where(column == FREE, z, size).min(axis=-1)
+    return np.where(column == FREE, np.arange(size), size).min(axis=-1)
+
+
+def box_tops(top: np.ndarray, lowest_free: np.ndarray, side: int) -> np.ndarray:
+    """(G, G) a map's tops and lowest FREE z -> (G, G) int8 the box tops of
+    `jaxmripp.spec.view` for boxes of `side` x `side` columns."""
     window = (side, side)
     box_top = np.lib.stride_tricks.sliding_window_view(top, window).max(axis=(-2, -1))
     box_free = np.lib.stride_tricks.sliding_window_view(lowest_free, window).min(axis=(-2, -1))
     possible = np.where((box_top > 0) & (box_free >= box_top), box_top, 0)
-    completed = top.copy()
+    completed = np.array(top, np.int8)
     for dx in range(side):  # each box gives its top to its side x side columns
         for dy in range(side):
             view = completed[dx:dx + possible.shape[0], dy:dy + possible.shape[1]]
             np.maximum(view, possible, out=view)
-    return completed.astype(np.int8)
+    return completed
 
 
 def gain_tops(occupancy, gain: GainModel) -> np.ndarray:
     """(G, G) the tops the view gain reads from `occupancy` (a `mapping.OccupancyMap`): its
-    own, or with `gain.tops` "boxes" its box tops (`jaxmripp.spec.view`)."""
+    own, or with `gain.tops` "boxes" the box tops of them and its lowest FREE z
+    (`jaxmripp.spec.view`)."""
     if gain.tops == "mapped":
         return occupancy.top
-    return box_tops(occupancy.codes, occupancy.size, gain.box_side)
+    return box_tops(occupancy.top, lowest_free(occupancy.codes, occupancy.size),
+                    gain.box_side)
 
 
 def facade_tops(top: np.ndarray, facade: str) -> np.ndarray:

@@ -57,16 +57,6 @@ def lower_free_from_cast(lowest_free: jax.Array, cast: CastResult) -> jax.Array:
     return lower_free(lowest_free, cast.voxels, cast.values)
 
 
-def column_bounds(codes: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """(..., G, G, G) int8 map codes -> its tops and lowest FREE z, (..., G, G) int8 each,
-    read from the codes whole (what `raise_tops` and `lower_free` keep step by step)."""
-    size = codes.shape[-1]
-    z = jnp.arange(size, dtype=jnp.int32)
-    top = jnp.max(jnp.where(codes == OCCUPIED, z + 1, 0), axis=-1)
-    lowest_free = jnp.min(jnp.where(codes == FREE, z, size), axis=-1)
-    return top.astype(jnp.int8), lowest_free.astype(jnp.int8)
-
-
 def box_tops(top: jax.Array, lowest_free: jax.Array, side: int) -> jax.Array:
     """(G, G) int8 tops and lowest FREE z of a map -> (G, G) int8 its box tops
     (`jaxmripp.spec.view`) for boxes of `side` x `side` columns."""
