@@ -129,14 +129,13 @@ def main(argv=None) -> int | None:
         return envmod.team_candidates(key, s, comms.contacts(s.position, d.radio_range), p, d)
 
     def view_gain_part(s):
-        return view.team_view_gain(s.team_map, s.view_top,
+        return view.team_view_gain(s.team_map, s.building_top,
                                    s.candidates.position[:, ::geometry.N_HEADINGS],
                                    s.position, p.sensor, p.size)
 
     def share_maps_part(s, d):
         contact = comms.contacts(s.position, d.radio_range)
-        return comms.share_maps(s.team_map, s.building_top, s.lowest_free, contact,
-                                p.radio.relay)
+        return comms.share_maps(s.team_map, s.building_top, contact, p.radio.relay)
 
     parts = {  # name: (function, donates and returns the state, extra arguments)
         "sensing": (simulation_jit(jax.vmap(sensing_part), donate_argnums=0), True, ()),

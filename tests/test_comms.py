@@ -182,17 +182,13 @@ share_maps = jax.jit(comms.share_maps, static_argnames="relay")
 
 def consistent_maps(rng, n, size):
     """n maps that each know a random part of one random truth (FREE / OCCUPIED), as int8
-    maps, as the team map that holds them (`jaxmripp.sim.maps`), with their tops and lowest
-    FREE z (N, G, G) int8, and the functions that read those from one map."""
+    maps and as the team map that holds them (`jaxmripp.sim.maps`)."""
     truth = rng.choice([0, 2], size=(size, size, size)).astype(np.int8)
     known = rng.random((n, size, size, size)) < 0.3
     robot_maps = np.where(known, truth[None], 1).astype(np.int8)
     column_top = lambda m: np.max(np.where(m == 2, np.arange(size) + 1, 0), axis=-1)
-    column_free = lambda m: np.min(np.where(m == 0, np.arange(size), size), axis=-1)
     tops = np.stack([column_top(m) for m in robot_maps]).astype(np.int8)
-    lowest_free = np.stack([column_free(m) for m in robot_maps]).astype(np.int8)
-    return truth, robot_maps, team_map_of(truth, known), (tops, lowest_free), \
-        (column_top, column_free)
+    return truth, robot_maps, team_map_of(truth, known), tops, column_top
 
 
 def team_map_of(truth, known):
@@ -208,16 +204,15 @@ def team_map_of(truth, known):
 @pytest.mark.parametrize("relay", [False, True])
 def test_shared_maps_are_the_union_of_what_each_robot_hears(relay):
     rng = np.random.default_rng(0)
-    truth, robot_maps, team, columns, (column_top, column_free) = consistent_maps(rng, 3, 6)
+    truth, robot_maps, team, tops, column_top = consistent_maps(rng, 3, 6)
     contact = np.asarray(contacts(CHAIN, 0.3))  # 0-1 and 1-2 linked, 0-2 not
-    team, merged_tops, merged_free = share_maps(team, *columns, contact, relay=relay)
-    merged = np.asarray(maps.robot_maps(team, 3))
+    team, merged_tops = share_maps(team, tops, contact, relay=relay)
+    merged, merged_tops = np.asarray(maps.robot_maps(team, 3)), np.asarray(merged_tops)
     for i in range(3):
         sources = [i] + [k for k in range(3) if contact[i, k] or (relay and k != i)]
         known = np.any(robot_maps[sources] != 1, axis=0)
         np.testing.assert_array_equal(merged[i], np.where(known, truth, 1))
         np.testing.assert_array_equal(merged_tops[i], column_top(merged[i]))
-        np.testing.assert_array_equal(merged_free[i], column_free(merged[i]))
     # The chain's ends hear each other's maps only through the middle robot (relay).
     assert relay == bool(np.any((robot_maps[2] != 1) & (robot_maps[0] == 1) & (merged[0] != 1)
                                 & (robot_maps[1] == 1)))
@@ -228,10 +223,10 @@ def test_shared_maps_of_a_large_team_match_the_union(relay):
     """Nine robots: their bits span two bytes per voxel, merged receiver by receiver."""
     rng = np.random.default_rng(2)
     n = 9
-    truth, robot_maps, team, columns, _ = consistent_maps(rng, n, 4)
+    truth, robot_maps, team, tops, _ = consistent_maps(rng, n, 4)
     contact = rng.random((n, n)) < 0.3
     contact = (contact | contact.T) & ~np.eye(n, dtype=bool)
-    merged = np.asarray(maps.robot_maps(share_maps(team, *columns, contact, relay=relay)[0], n))
+    merged = np.asarray(maps.robot_maps(share_maps(team, tops, contact, relay=relay)[0], n))
     hears = np.asarray(comms.links(jnp.asarray(contact), relay)) | np.eye(n, dtype=bool)
     for i in range(n):
         known = np.any(robot_maps[hears[i]] != 1, axis=0)
@@ -265,8 +260,7 @@ def test_a_batch_of_large_team_maps_merges_each_map_by_its_own_links(map_by_map,
 
 def test_shared_maps_without_contact_change_nothing():
     rng = np.random.default_rng(1)
-    _, _, team, columns, _ = consistent_maps(rng, 3, 5)
-    merged, *merged_columns = share_maps(team, *columns, np.zeros((3, 3), bool), relay=False)
+    _, _, team, tops, _ = consistent_maps(rng, 3, 5)
+    merged, merged_tops = share_maps(team, tops, np.zeros((3, 3), bool), relay=False)
     np.testing.assert_array_equal(np.asarray(merged), team)
-    for got, want in zip(merged_columns, columns):
-        np.testing.assert_array_equal(np.asarray(got), want)
+    np.testing.assert_array_equal(np.asarray(merged_tops), tops)

@@ -173,10 +173,9 @@ def test_branches_beyond_the_candidates_are_refused():
 
 
 _AHEAD = ["policy.ahead_branches=5", "policy.ahead_discount=1.5",
-          "policy.ahead_facade_weight=3", "radio.range=0.5", "sensor.gain_tops=boxes"]
+          "policy.ahead_facade_weight=3", "radio.range=0.5"]
 # The lookahead input as nbv_ahead's value, and as nbv_targets': both with the belief's
-# inputs and the gain on box tops, so that they differ in the rating alone and each
-# compiles once for every test.
+# inputs, so that they differ in the rating alone and each compiles once for every test.
 AHEAD_SETTINGS = {
     "view": [*_AHEAD, "policy.belief_features=true"],
     "rated": [*_AHEAD, "policy.belief_features=true", "policy.ahead_rated=true"],

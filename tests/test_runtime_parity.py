@@ -26,8 +26,7 @@ What must agree exactly or to float32 rounding, every round and robot:
   map (`MapSharing.conflicts`), so the runtime's merge rule (OCCUPIED is never freed)
   gives the env's merge;
 - the observation features the runtime builds for the env's candidate set equal the env's
-  observation (so the two implementations of `jaxmripp.spec.layout` agree, the view gain
-  reading box tops, `sensor.gain_tops=boxes`, on both sides), and each
+  observation (so the two implementations of `jaxmripp.spec.layout` agree), and each
   env column means what the layout says (dx is the offset over the shell radius, ...);
 - the GPs hold the same points in the same slots (the feeding rule of
   `jaxmripp.spec.feeding`), so the GP columns at the runtime's own candidates equal the
@@ -65,8 +64,7 @@ from test_runtime_flight import interval_reference
 # backlogs build up and which peer each round picks matters.
 CFG = config.load(REPO / "tests/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
-    "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0",
-    "sensor.gain_tops=boxes"])
+    "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0"])
 SEEDS = tuple(range(8))  # the episodes are cheap next to compiling the env
 KAPPA, LAM = 1.0, 0.5  # both GPs enter the greedy score
 COL = {name: k for k, name in enumerate(EXPECTED_FEATURES)}

@@ -12,7 +12,7 @@ from typing import Any
 from jaxmripp.config.errors import ConfigError, shown
 from jaxmripp.config.sections import Config
 from jaxmripp.spec.flight import FLIGHT_MODES
-from jaxmripp.spec.view import FACADE_TOPS, GAIN_TOPS
+from jaxmripp.spec.view import FACADE_TOPS
 
 
 def _range(lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False):
@@ -76,7 +76,6 @@ RULES: dict[str, tuple] = {
     "sensor.range": _range(0, 1, lo_open=True),
     "sensor.rays_per_voxel": _range(0.5, 8),
     "sensor.gain_facade": _choice(*FACADE_TOPS),
-    "sensor.gain_tops": _choice(*GAIN_TOPS),
     "radio.range": _NONNEG,
     "radio.collision_distance": _NONNEG,
     "safety.flight": _choice(*FLIGHT_MODES),

@@ -66,11 +66,6 @@ class SensorConfig:
     # protocol's) | "column" (its own: windows inside footprints)
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
-    # Which tops the view gain (and the lookahead made of it) reads: the map's ("mapped") or
-    # its box tops ("boxes": every column of each smallest-footprint box that may hold a
-    # mapped building column, jaxmripp.spec.view); the target belief reads the map's
-    # tops
-    gain_tops: str = "mapped"
 
 
 @dataclasses.dataclass(frozen=True)

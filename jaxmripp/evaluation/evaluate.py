@@ -71,9 +71,8 @@ def run_episodes(keys: jax.Array, params: EnvParams, dyn: DynamicParams, planner
     def one(key):
         result = episode.run(key, params, dyn, planner)
         return result.replace(final_state=result.final_state.replace(
-            team_map=None, building_top=None, lowest_free=None, view_top=None,
-            history_pose=None, history_utility=None, utility_gp=None, comm_gp=None,
-            candidates=None))
+            team_map=None, building_top=None, history_pose=None, history_utility=None,
+            utility_gp=None, comm_gp=None, candidates=None))
 
     return jax.vmap(one)(keys)
 

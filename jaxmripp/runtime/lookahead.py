@@ -57,8 +57,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     values = rate.copy()
     if not len(first):
         return values.astype(F32)
-    tops = view.gain_tops(occupancy, spec.gain)
-    after = view.after_views(occupancy.codes, tops, c.position[first],
+    after = view.after_views(occupancy.codes, occupancy.top, c.position[first],
                              c.heading[first], spec.gain, occupancy.size)
     following = cands.sample_many(draws, c.position[first], c.heading[first],
                                   F32(budget_left) - c.cost[first], after, occupancy.size,
@@ -67,7 +66,7 @@ def ahead_rates(uniforms: np.ndarray, features: np.ndarray, mask: np.ndarray,
     # copies, as the draws were).
     valid = following.valid
     unknown, facade = np.zeros(valid.shape, F32), np.zeros(valid.shape, F32)
-    gains = view.view_gain(after, tops, following.position[valid],
+    gains = view.view_gain(after, occupancy.top, following.position[valid],
                            following.heading[valid], spec.gain, occupancy.size,
                            rows=np.nonzero(valid)[0], rates=facade_rates)
     unknown[valid], facade[valid] = gains[0], gains[-1]

@@ -45,9 +45,8 @@ def candidate_features(c: Candidates, position: np.ndarray, budget_left, budget_
     u_mean, u_var = utility_gp.predict(poses)
     c_mean, c_var = comm_gp.predict(poses)
     budget = _fraction_of(budget_initial)
-    tops = view.gain_tops(occupancy, gain)
-    unknown, facade, *windows = view.view_gain(occupancy.codes, tops, c.position, c.heading,
-                                               gain, occupancy.size, rates=rates)
+    unknown, facade, *windows = view.view_gain(occupancy.codes, occupancy.top, c.position,
+                                               c.heading, gain, occupancy.size, rates=rates)
     belief = [] if rates is None else [
         windows[0][:, None], view.per_cost(windows[0], c.cost, max_distance)[:, None]]
     features = np.concatenate([

@@ -14,7 +14,7 @@ from jaxmripp.runtime.errors import WeightsFormatError
 from jaxmripp.runtime.view import GainModel
 from jaxmripp.spec import removed
 from jaxmripp.spec.layout import features
-from jaxmripp.spec.view import FACADE_TOPS, GAIN_TOPS
+from jaxmripp.spec.view import FACADE_TOPS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -73,10 +73,6 @@ class RuntimeSpec:
     # sensor.gain_facade; jaxmripp.spec.view).
     gain_occlusion: bool = True
     gain_facade: str = "nearby"
-    # Whether it reads the map's tops or its box tops (sensor.gain_tops), and their side
-    # (the world's smallest footprint side; jaxmripp.spec.view).
-    gain_tops: str = "mapped"
-    box_side: int = 1
     # The target belief (jaxmripp.spec.belief): whether the policy reads its columns, the
     # prior strength k (policy.belief_strength) and the prior rate m of the trained world.
     belief_features: bool = False
@@ -87,7 +83,7 @@ class RuntimeSpec:
     def gain(self) -> GainModel:
         """What the view-gain features assume of the sensor (`jaxmripp.runtime.view`)."""
         return GainModel(self.fov_deg, self.sensor_range, self.gain_occlusion,
-                         self.gain_facade, self.gain_tops, self.box_side)
+                         self.gain_facade)
 
     @property
     def n_candidates(self) -> int:
@@ -137,7 +133,6 @@ class RuntimeSpec:
             raise WeightsFormatError("export header: missing field config.radio.share_maps "
                                      "(exported before map sharing, protocol 3; re-export "
                                      "the policy)")
-        gain_tops = choice("sensor", "gain_tops", GAIN_TOPS, default="mapped")
         ahead: dict[str, Any] = {}  # the optional sections' fields
         if "ahead" in config:  # exports without the lookahead input may lack the section
             ahead = dict(ahead_branches=get("ahead", "branches", int),
@@ -166,8 +161,6 @@ class RuntimeSpec:
             sensor_range=get("sensor", "range", float),
             gain_occlusion=get("sensor", "gain_occlusion", bool, default=True),
             gain_facade=choice("sensor", "gain_facade", FACADE_TOPS, default="nearby"),
-            gain_tops=gain_tops,
-            box_side=get("world", "box_side", int) if gain_tops == "boxes" else 1,
             radio_range=get("radio", "range", float),
             relay=get("radio", "relay", bool),
             share_maps=get("radio", "share_maps", bool),

@@ -29,16 +29,13 @@ F32 = np.float32
 
 class GainModel(NamedTuple):
     """What the view gain assumes of the sensor and the world (`jaxmripp.spec.view`):
-    the camera's field of view and range, whether voxels mapped OCCUPIED stop its rays,
-    which tops mark facade voxels (`spec.FACADE_TOPS`), and whether the gain reads the
-    map's tops or its box tops of `box_side` x `box_side` boxes (`spec.GAIN_TOPS`)."""
+    the camera's field of view and range, whether voxels mapped OCCUPIED stop its rays and
+    which tops mark facade voxels (`spec.FACADE_TOPS`)."""
 
     fov_deg: float
     sensor_range: float
     occlusion: bool = True
     facade: str = "nearby"
-    tops: str = "mapped"
-    box_side: int = 1
 
 
 _SIDES = ((0, 0), (-1, 0), (1, 0), (0, -1), (0, 1))
@@ -62,37 +59,6 @@ def nearby_tops(top: np.ndarray) -> np.ndarray:
 def around_tops(top: np.ndarray) -> np.ndarray:
     """(G, G) -> (G, G) int32: the largest top of each column and its eight neighbours."""
     return _neighbour_max(top, _SIDES + _CORNERS)
-
-
-def lowest_free(codes: np.ndarray, size: int) -> np.ndarray:
-    """(G**3,) map codes -> (G, G) the lowest z mapped FREE per column (G where none)."""
-    column = np.asarray(codes).reshape(size, size, size)
-    return np.where(column == FREE, np.arange(size), size).min(axis=-1)
-
-
-def box_tops(top: np.ndarray, lowest_free: np.ndarray, side: int) -> np.ndarray:
-    """(G, G) a map's tops and lowest FREE z -> (G, G) int8 the box tops of
-    `jaxmripp.spec.view` for boxes of `side` x `side` columns."""
-    window = (side, side)
-    box_top = np.lib.stride_tricks.sliding_window_view(top, window).max(axis=(-2, -1))
-    box_free = np.lib.stride_tricks.sliding_window_view(lowest_free, window).min(axis=(-2, -1))
-    possible = np.where((box_top > 0) & (box_free >= box_top), box_top, 0)
-    completed = np.array(top, np.int8)
-    for dx in range(side):  # each box gives its top to its side x side columns
-        for dy in range(side):
-            view = completed[dx:dx + possible.shape[0], dy:dy + possible.shape[1]]
-            np.maximum(view, possible, out=view)
-    return completed
-
-
-def gain_tops(occupancy, gain: GainModel) -> np.ndarray:
-    """(G, G) the tops the view gain reads from `occupancy` (a `mapping.OccupancyMap`): its
-    own, or with `gain.tops` "boxes" the box tops of them and its lowest FREE z
-    (`jaxmripp.spec.view`)."""
-    if gain.tops == "mapped":
-        return occupancy.top
-    return box_tops(occupancy.top, lowest_free(occupancy.codes, occupancy.size),
-                    gain.box_side)
 
 
 def facade_tops(top: np.ndarray, facade: str) -> np.ndarray:

@@ -50,7 +50,7 @@ import numpy as np
 from jaxmripp.runtime.errors import CorruptWeightsError, WeightsFormatError
 from jaxmripp.runtime.policy import NumpyPolicy
 from jaxmripp.runtime.spec import GPSpec, RuntimeSpec, header_field  # noqa: F401
-from jaxmripp.spec import belief, view
+from jaxmripp.spec import belief
 from jaxmripp.spec.layout import ROBOT_STATE, features
 
 FORMAT = "jaxmripp-policy"
@@ -80,8 +80,6 @@ def config_header(cfg) -> dict[str, Any]:
                   "facade_weight": cfg.policy.ahead_facade_weight,
                   "rated": cfg.policy.ahead_rated},
     }
-    if cfg.sensor.gain_tops == "boxes":  # absent: the gain reads the map's tops
-        head["world"]["box_side"] = view.box_side(cfg.world.footprint, cfg.world.footprint_min)
     if cfg.policy.belief_features:  # absent: no belief input (as exports before it)
         world = cfg.world
         head["belief"] = {"features": True, "strength": cfg.policy.belief_strength,

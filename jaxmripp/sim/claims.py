@@ -44,12 +44,12 @@ def in_turn(decide: Decide, obs: Observation, state: EnvState, sensor: SensorCon
         heard = jnp.where(hears[i][:, None], claimed, outside).reshape(-1)
         occupancy = state.occupancy[i].reshape(-1).at[heard].set(
             geometry.FREE, mode="drop").reshape(state.occupancy.shape[1:])
-        columns = view_columns(occupancy, state.view_top[i], c.position[i], c.cost[i],
+        columns = view_columns(occupancy, state.building_top[i], c.position[i], c.cost[i],
                                sensor, size, shell_outer)
         mine = jax.tree.map(lambda x: x[i], obs)
         mine = mine.replace(features=mine.features.at[:, VIEW_COLUMNS].set(columns))
         action, extra = decide(i, mine, occupancy)
-        seen = view.unknown_in_view(occupancy, state.view_top[i], c.position[i, action],
+        seen = view.unknown_in_view(occupancy, state.building_top[i], c.position[i, action],
                                     c.heading[i, action], sensor, size)
         seen = jnp.where(jnp.any(mine.mask), seen, outside)
         return claimed.at[i].set(seen), (mine, action, extra)

@@ -90,25 +90,20 @@ def _reachable(contact: jax.Array) -> jax.Array:
     return reach > 0
 
 
-def share_maps(team_map: jax.Array, tops: jax.Array, lowest_free: jax.Array,
-               contact: jax.Array, relay: bool) -> tuple[jax.Array, jax.Array, jax.Array]:
+def share_maps(team_map: jax.Array, tops: jax.Array, contact: jax.Array,
+               relay: bool) -> tuple[jax.Array, jax.Array]:
     """The map merge of `jaxmripp.spec.sharing`: a team map (`jaxmripp.sim.maps`), (N, G, G)
-    int8 building tops and lowest FREE z (`jaxmripp.sim.tops`), (N, N) bool contacts ->
-    merged team map, tops and lowest FREE z.
+    int8 building tops, (N, N) bool contacts -> merged team map and tops.
 
     Every robot learns what the robots it hears knew before this merge (single hop), or
     its whole component (relay); known codes agree with the truth, so what a robot learns
-    does not depend on the order it hears its peers in, and the merged map's tops and
-    lowest FREE z are the largest and smallest of those it heard."""
+    does not depend on the order it hears its peers in."""
     n = tops.shape[0]
     chex.assert_shape(contact, (n, n))
     linked = links(contact, relay)
 
-    def hear(k, merged):
-        merged_tops, merged_free = merged
-        heard = linked[:, k, None, None]
-        return (jnp.where(heard, jnp.maximum(merged_tops, tops[k][None]), merged_tops),
-                jnp.where(heard, jnp.minimum(merged_free, lowest_free[k][None]), merged_free))
+    def hear(k, merged_tops):
+        return jnp.where(linked[:, k, None, None], jnp.maximum(merged_tops, tops[k][None]),
+                         merged_tops)
 
-    merged_tops, merged_free = jax.lax.fori_loop(0, n, hear, (tops, lowest_free))
-    return maps.merge(team_map, linked), merged_tops, merged_free
+    return maps.merge(team_map, linked), jax.lax.fori_loop(0, n, hear, tops)

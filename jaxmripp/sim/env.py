@@ -52,8 +52,6 @@ def reset(key: chex.PRNGKey, params: EnvParams,
         done=jnp.zeros((n,), bool),
         team_map=maps.empty(world.height, n),
         building_top=jnp.broadcast_to(tops.empty_tops(size), (n, size, size)),
-        lowest_free=jnp.broadcast_to(tops.empty_lowest_free(size), (n, size, size)),
-        view_top=jnp.broadcast_to(tops.empty_tops(size), (n, size, size)),
         heard=jnp.zeros((n, n), bool),
         discovered=jnp.zeros(world.target_valid.shape, bool),
         history_pose=jnp.zeros((n, history, 4), jnp.float32),
@@ -168,7 +166,6 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
         state.world, state.position, state.heading, params.sensor, size)
     team_map = maps.observe(state.team_map, casts.voxels)
     top = jax.vmap(tops.raise_tops_from_cast)(state.building_top, casts)
-    lowest_free = jax.vmap(tops.lower_free_from_cast)(state.lowest_free, casts)
     seen = casts.seen & moved[:, None]
     fresh = seen & ~state.discovered[None]
     finders = fresh.sum(axis=0)  # (T,) robots that found each window at this step
@@ -190,13 +187,9 @@ def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicPara
     contact = comms.contacts(state.position, dyn.radio_range)
     know = comms.exchange(know, contact, params.radio.relay)
     if params.radio.share_maps:
-        team_map, top, lowest_free = comms.share_maps(team_map, top, lowest_free, contact,
-                                                      params.radio.relay)
-    view_top = top if params.sensor.gain_tops == "mapped" else jax.vmap(
-        tops.box_tops, in_axes=(0, 0, None))(top, lowest_free, params.box_side)
-    state = state.replace(team_map=team_map, building_top=top, lowest_free=lowest_free,
-                          view_top=view_top, heard=contact, discovered=discovered,
-                          history_pose=history_pose,
+        team_map, top = comms.share_maps(team_map, top, contact, params.radio.relay)
+    state = state.replace(team_map=team_map, building_top=top, heard=contact,
+                          discovered=discovered, history_pose=history_pose,
                           history_utility=history_utility, know=know,
                           metrics=state.metrics.replace(
                               contacts=state.metrics.contacts + contact.sum() // 2))

@@ -173,7 +173,7 @@ def ahead_rates(key, obs: Observation, state: EnvState, params: EnvParams,
         return jnp.where(jnp.isfinite(values), values, rate)
 
     return jax.vmap(one)(jnp.arange(params.n_robots), obs.features, obs.mask,
-                         state.occupancy, state.view_top, state.candidates,
+                         state.occupancy, state.building_top, state.candidates,
                          state.budget_left, keys, rates if ahead.rated else None)
 
 
@@ -204,7 +204,7 @@ def choose_in_turn(key, obs: Observation, state: EnvState, dyn: DynamicParams,
         search = Search(params, dyn, state.position, state.heard[i], facade_weight, discount,
                         branches, None if rates is None else rates[i])
         c = jax.tree.map(lambda x: x[i], state.candidates)
-        values, _ = lookahead_values(search, mine, occupancy, state.view_top[i], keys[i],
+        values, _ = lookahead_values(search, mine, occupancy, state.building_top[i], keys[i],
                                      c, state.budget_left[i], flights)
         return layout.masked_argmax(values + jitter[i], mine.mask, jnp), None
 

@@ -120,7 +120,7 @@ def observe(state: EnvState, params: EnvParams, rates: jax.Array | None) -> Obse
     heading_onehot = jax.nn.one_hot(c.heading, geometry.N_HEADINGS)
     budget = jnp.maximum(state.budget_initial, 1e-6)
     shell = params.candidates.shell[1]
-    gains = view.team_view_gain(state.team_map, state.view_top,
+    gains = view.team_view_gain(state.team_map, state.building_top,
                                 c.position[:, ::geometry.N_HEADINGS], state.position,
                                 params.sensor, params.size, rates=rates)
     gain_columns = _stacked_view_columns(gains[:2], c.cost, shell)

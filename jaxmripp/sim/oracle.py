@@ -91,7 +91,7 @@ def choose_ahead(key, mask: jax.Array, state: EnvState, dyn: DynamicParams,
 
         def value(a, key):
             _, following = lookahead.draw_following(
-                search, state.occupancy[i], state.view_top[i], c.position[i, a],
+                search, state.occupancy[i], state.building_top[i], c.position[i, a],
                 c.heading[i, a], state.budget_left[i] - c.cost[i, a], key)
             later = cast(following.position, following.heading) & ~(covered | seen[a])[None]
             gained = fresh[a] + discount * jnp.sum(later, axis=-1).astype(jnp.float32)

@@ -21,7 +21,6 @@ from flax import struct
 from jaxmripp.config import (CandidateConfig, Config, GPConfig, SafetyConfig, SensorConfig,
                              WorldConfig)
 from jaxmripp.spec import layout
-from jaxmripp.spec import view as view_spec
 
 
 @dataclasses.dataclass(frozen=True)
@@ -91,11 +90,6 @@ class EnvParams:
     @property
     def n_candidates(self) -> int:
         return self.candidates.count
-
-    @property
-    def box_side(self) -> int:
-        """F, the side of the box tops' boxes (`jaxmripp.spec.view`)."""
-        return view_spec.box_side(self.world.footprint, self.world.footprint_min)
 
     @property
     def n_features(self) -> int:

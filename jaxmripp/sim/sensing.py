@@ -339,7 +339,6 @@ def _flat_scatter(write: str):
 
 scatter_set = _flat_scatter("set")
 scatter_max = _flat_scatter("max")
-scatter_min = _flat_scatter("min")
 scatter_add = _flat_scatter("add")
 
 

@@ -43,10 +43,6 @@ class EnvState:
     done: jax.Array  # (N,) bool: out of affordable candidates or out of steps
     team_map: jax.Array  # (W, G, G, G) uint8 the robots' maps as bits (sim.maps)
     building_top: jax.Array  # (N, G, G) int8 per-robot building tops (jaxmripp.spec.view)
-    lowest_free: jax.Array  # (N, G, G) int8 per-robot lowest z mapped FREE (G: none)
-    view_top: jax.Array  # (N, G, G) int8 the tops the view gain reads, once per step for
-    #                      its readers: building_top, or the box tops of it and lowest_free
-    #                      (sensor.gain_tops=boxes); the belief reads building_top
     heard: jax.Array  # (N, N) bool robots in radio range at the current positions
     discovered: jax.Array  # (T,) bool: found by anybody
     history_pose: jax.Array  # (N, H, 4) poses each robot visited, in order

@@ -22,6 +22,7 @@ BUILT_IN: dict[str, Any] = {
     "safety.priority": "id",
     "gp.peer_rounds": 255,  # uncapped: N - 1 for every team of at most 256 robots
     "policy.view_prior": 0.0,
+    "sensor.gain_tops": "mapped",  # the view gain reads the map's tops
 }
 
 

@@ -15,20 +15,6 @@ Building tops
     of the column and its four horizontal neighbours inside the grid, its *around top* the
     largest of the column and its eight neighbours (sides and corners).
 
-Box tops (`sensor.gain_tops=boxes`)
-    Buildings are boxes standing on the ground whose footprints are at least F x F columns
-    (F = the world's smallest footprint side), so one mapped column says more than its own
-    top: the building holds a whole F x F box of columns around it. With `boxes` the view
-    gain below (and so the lookahead and the claims, which are made of it) reads, instead
-    of the map's tops t, the *box tops* computed afresh from the map at each decision (the
-    target belief's buildings stay the mapped columns, `jaxmripp.spec.belief`). With f(c)
-    the lowest z mapped FREE in column c (G when none), an F x F box b of columns inside
-    the grid is *possible* when its highest top m(b) = max over c in b of t(c) is > 0 and
-    every column of b has f(c) >= m(b) (a column known free below m(b) stands outside that
-    building); the box top of column c is the largest of t(c) and m(b) over the possible
-    boxes b that hold c. They are a function of the map alone, so they need nothing sent;
-    where a map learns that a column is free, its box tops may fall.
-
 Samples
     A pose looks along its heading from the centre of its voxel c. The gain rays are a
     RAYS_PER_SIDE x RAYS_PER_SIDE grid through the centres of equal cells of the image
@@ -83,13 +69,6 @@ PEER_CAP = 5.0  # shell lengths: "nobody near"
 VIEW_FEATURES = ("view_unknown", "view_facade", "view_unknown_per_cost", "view_facade_per_cost")
 INTENT_FEATURES = ("peer_distance",)
 FACADE_TOPS = ("nearby", "around", "column")  # sensor.gain_facade: which tops mark facade voxels
-GAIN_TOPS = ("mapped", "boxes")  # sensor.gain_tops: the map's tops or its box tops
-
-
-def box_side(footprint: int, footprint_min: int) -> int:
-    """F: the smallest footprint side the world generator draws (`world.footprint_min`
-    when set, else `world.footprint`), the side of the box tops' boxes."""
-    return footprint_min or footprint
 
 
 def samples_per_ray(sensor_range: float, size: int) -> int:
