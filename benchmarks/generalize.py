@@ -13,12 +13,23 @@ means. Figures (JSON lines):
     generalize.cells_won            cells where the policy's mean is above the best's
     generalize.geomean_ratio        geometric mean of the 12 ratios
 
+With --ceilings every cell also runs two upper references (never baselines): oracle_rate,
+which knows each building's true remaining windows, and oracle_city, which knows those and
+the city's geometry; each cell's line adds their means (rate_ceiling_pct,
+city_ceiling_pct), and two more lines give how far above the best classical planner they
+reach, as the geometric mean over the cells of reference / best classical:
+
+    generalize.geomean_rate_ceiling_ratio
+    generalize.geomean_city_ceiling_ratio
+
 Cells: the team budget is the team's; "n6" scales it by N / 3 as the issue of record
 asks, the combined cells take it literally.
 
-Usage (from the repository root; about 40 minutes on a 2-core CPU):
+Usage (from the repository root; about 40 minutes on a 2-core CPU, with --ceilings about
+8 minutes a cell):
     python benchmarks/generalize.py [--policy DIR] [--worlds 10] [--trials 5]
-                                    [--cells a,b,...] [section.key=value ...]
+                                    [--cells a,b,...] [--ceilings]
+                                    [section.key=value ...]
 """
 
 from __future__ import annotations
@@ -38,6 +49,8 @@ from jaxmripp.config import presets  # noqa: E402
 
 PRESET = "protocol_table1"  # the packaged preset (configs/protocol_table1.yaml)
 CLASSICAL = ("nbv_targets", "nbv_ahead", "nbv_team", "nbv")
+# --ceilings: reference -> its field in a cell's line
+CEILINGS = {"oracle_rate": "rate_ceiling_pct", "oracle_city": "city_ceiling_pct"}
 FOOTPRINTS = ("world.footprint=5", "world.footprint_min=2")
 # name -> overrides of the default Table I cell (N = 3, B = 10, random layout, rho = inf)
 CELLS = {
@@ -71,6 +84,27 @@ def cell_config(name: str, planners: list[str], worlds: int, trials: int,
     return cfgmod.load(PRESET, [*base, *CELLS[name], *overrides])
 
 
+def cell_figures(found: dict, worlds: int) -> dict:
+    """One cell's figures from each planner's % found per run (runs ordered world-major,
+    the same runs for every planner): the policy's ratio to the best classical planner and
+    the paired p-value, both means, random's, and each ceiling's mean where it ran."""
+    from jaxmripp.evaluation.stats import paired_by_world  # noqa: PLC0415 (imports scipy)
+
+    best = max(CLASSICAL, key=lambda p: found[p].mean())
+    ours, theirs = float(found["policy"].mean()), float(found[best].mean())
+    test = paired_by_world(found["policy"], found[best], worlds)
+    figures = dict(value=ours / theirs, policy_pct=ours, best=best, best_pct=theirs,
+                   random_pct=float(found["random"].mean()), p=float(f"{test['p']:.3g}"))
+    figures.update({field: float(found[ref].mean()) for ref, field in CEILINGS.items()
+                    if ref in found})
+    return figures
+
+
+def geomean(values) -> float:
+    values = list(values)
+    return math.exp(sum(map(math.log, values)) / len(values))
+
+
 @entry_point
 def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
@@ -80,6 +114,9 @@ def main(argv=None) -> int:
     parser.add_argument("--trials", type=int, default=5)
     parser.add_argument("--cells", default=",".join(CELLS),
                         help="comma-separated cell names (default: all 12)")
+    parser.add_argument("--ceilings", action="store_true",
+                        help="also run oracle_rate and oracle_city in every cell "
+                             "(upper references)")
     parser.add_argument("overrides", nargs="*", help="dotted overrides for every cell")
     add_quiet(parser)
     args = parser.parse_args(argv)
@@ -92,18 +129,17 @@ def main(argv=None) -> int:
         parser.error(f"--worlds {args.worlds} --trials {args.trials}: allowed: worlds >= 2 "
                      "(the paired test needs two) and trials >= 1")
     folders.policy(args.policy)  # a folder of another kind fails here, in one line
-    planners = ["policy", *CLASSICAL, "random"]
+    planners = ["policy", *CLASSICAL, "random", *(CEILINGS if args.ceilings else ())]
     configs = {name: cell_config(name, planners, args.worlds, args.trials, args.overrides)
                for name in chosen}
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
-    from jaxmripp.evaluation.stats import paired_by_world  # noqa: PLC0415
     from jaxmripp.parallel import progress  # noqa: PLC0415
 
     emit_text("generalize.command", "python benchmarks/generalize.py "
               + " ".join(argv if argv is not None else sys.argv[1:]))
-    ratios, won = [], 0
+    lines = []
     cells = progress.bar(len(configs), "cells", unit="cell")
     for name, cfg in configs.items():
         cfg = pipeline.with_policy_inputs(cfg, [args.policy])
@@ -111,19 +147,19 @@ def main(argv=None) -> int:
                                         log=lambda line: print(line, file=sys.stderr))
         result = sweep.run_sweep(cfg, {"policy": policy}, log=lambda line: None,
                                  time_planning=False, keep_pictures=False)
-        found = {r.planner: r.discovered for r in result.runs}
-        best = max(CLASSICAL, key=lambda p: found[p].mean())
-        ours, theirs = float(found["policy"].mean()), float(found[best].mean())
-        test = paired_by_world(found["policy"], found[best], args.worlds)
-        ratios.append(ours / theirs)
-        won += int(ours > theirs)
-        emit(f"generalize.cell.{name}", ours / theirs, "ratio", policy_pct=ours, best=best,
-             best_pct=theirs, random_pct=float(found["random"].mean()),
-             p=float(f"{test['p']:.3g}"), worlds=args.worlds, trials=args.trials)
+        line = cell_figures({r.planner: r.discovered for r in result.runs}, args.worlds)
+        lines.append(line)
+        emit(f"generalize.cell.{name}", line.pop("value"), "ratio", **line,
+             worlds=args.worlds, trials=args.trials)
         cells.update()
     cells.close()
-    emit("generalize.cells_won", won, "cells", of=len(ratios))
-    emit("generalize.geomean_ratio", math.exp(sum(map(math.log, ratios)) / len(ratios)), "ratio")
+    emit("generalize.cells_won", sum(c["policy_pct"] > c["best_pct"] for c in lines), "cells",
+         of=len(lines))
+    emit("generalize.geomean_ratio", geomean(c["policy_pct"] / c["best_pct"] for c in lines),
+         "ratio")
+    for field in CEILINGS.values() if args.ceilings else ():
+        emit(f"generalize.geomean_{field.removesuffix('_pct')}_ratio",
+             geomean(c[field] / c["best_pct"] for c in lines), "ratio")
     return 0
 
 

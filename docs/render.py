@@ -155,17 +155,28 @@ def policies_table(root: Path) -> list[str]:
 
 
 def generalize_table(root: Path, path: str) -> list[str]:
-    """One row per cell of benchmarks/generalize.py's output."""
+    """One row per cell of benchmarks/generalize.py's output, with the upper references'
+    columns where it ran them (--ceilings)."""
     records = _json_lines(root / path)
-    lines = ["| cell | policy % | best classical | its % | ratio | paired p |",
-             "|---|---|---|---|---|---|"]
-    for name, r in records.items():
-        if name.startswith("generalize.cell."):
-            lines.append(f"| {name.removeprefix('generalize.cell.')} | {r['policy_pct']:.2f} | "
-                         f"{r['best']} | {r['best_pct']:.2f} | {r['value']:.3f} | {r['p']:.3f} |")
+    cells = {name.removeprefix("generalize.cell."): r for name, r in records.items()
+             if name.startswith("generalize.cell.")}
+    ceilings = [c for c in ("rate_ceiling", "city_ceiling")
+                if all(f"{c}_pct" in r for r in cells.values())]
+    heads = {"rate_ceiling": "oracle_rate %", "city_ceiling": "oracle_city %"}
+    lines = ["| cell | policy % | best classical | its % | ratio | paired p |"
+             + "".join(f" {heads[c]} |" for c in ceilings),
+             "|---|---|---|---|---|---|" + "---|" * len(ceilings)]
+    for name, r in cells.items():
+        lines.append(f"| {name} | {r['policy_pct']:.2f} | {r['best']} | {r['best_pct']:.2f} | "
+                     f"{r['value']:.3f} | {r['p']:.3f} |"
+                     + "".join(f" {r[f'{c}_pct']:.2f} |" for c in ceilings))
+    if "generalize.cells_won" not in records:  # a run stopped before its summary lines
+        return lines + ["", f"Cells run: {len(cells)} ({path})."]
     won, geomean = records["generalize.cells_won"], records["generalize.geomean_ratio"]
-    return lines + ["", f"Cells won {int(won['value'])} of {len(lines) - 2}, geometric mean ratio "
-                        f"{geomean['value']:.3f} ({path})."]
+    above = "".join(f", {heads[c].removesuffix(' %')} / best classical "
+                    f"{records[f'generalize.geomean_{c}_ratio']['value']:.3f}" for c in ceilings)
+    return lines + ["", f"Cells won {int(won['value'])} of {len(cells)}, geometric mean ratio "
+                        f"{geomean['value']:.3f}{above} ({path})."]
 
 
 def alternatives_table(root: Path, path: str) -> list[str]:

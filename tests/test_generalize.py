@@ -7,7 +7,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
+from scipy import stats
 from scripts import load_script
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -38,6 +40,29 @@ def test_cells_shift_the_table_i_setting_as_named():
     assert {(c.eval.worlds, c.eval.trials) for c in cfgs.values()} == {(10, 5)}
 
 
+def test_cell_figures_pick_the_best_classical_and_pair_by_world():
+    gen = _module()
+    worlds, trials = 4, 3
+    rng = np.random.default_rng(0)
+    world_effect = np.repeat(rng.normal(0, 5, worlds), trials)  # runs are world-major
+    found = {p: 50 + world_effect + rng.normal(0, 1, worlds * trials) + shift
+             for p, shift in [("policy", 2.0), ("nbv_targets", 0.5), ("nbv_ahead", 1.0),
+                              ("nbv_team", -1.0), ("nbv", -3.0), ("random", -30.0)]}
+    line = gen.cell_figures(found, worlds)
+    assert line["best"] == "nbv_ahead"  # the largest mean among the classical planners
+    assert line["value"] == pytest.approx(found["policy"].mean() / found["nbv_ahead"].mean())
+    per_world = [found[p].reshape(worlds, trials).mean(axis=1) for p in ("policy", "nbv_ahead")]
+    assert line["p"] == pytest.approx(stats.ttest_rel(*per_world).pvalue, rel=1e-2)
+    assert not {"rate_ceiling_pct", "city_ceiling_pct"} & set(line)  # only where they ran
+    # References never count as the best, however much they find.
+    found |= {"oracle_rate": found["policy"] + 5, "oracle_city": found["policy"] + 9}
+    line = gen.cell_figures(found, worlds)
+    assert line["best"] == "nbv_ahead"
+    assert line["city_ceiling_pct"] == pytest.approx(found["policy"].mean() + 9)
+    assert line["rate_ceiling_pct"] == pytest.approx(found["policy"].mean() + 5)
+    assert gen.geomean([2.0, 8.0]) == pytest.approx(4.0)
+
+
 @pytest.mark.parametrize("arguments", [["--cells", "nope"], ["--worlds", "1"],
                                        ["--policy", "configs"], ["world.buildings=0"]])
 def test_bad_arguments_are_one_error_line(arguments, capsys, monkeypatch):
@@ -54,10 +79,13 @@ def test_bad_arguments_are_one_error_line(arguments, capsys, monkeypatch):
 @pytest.mark.slow
 def test_one_cell_prints_its_figures():
     done = subprocess.run([sys.executable, "benchmarks/generalize.py", "--cells", "budget7",
-                           "--worlds", "2", "--trials", "1"], cwd=ROOT, capture_output=True,
-                          text=True, check=True)
+                           "--worlds", "2", "--trials", "1", "--ceilings"], cwd=ROOT,
+                          capture_output=True, text=True, check=True)
     figures = {r["name"]: r for r in map(json.loads, done.stdout.splitlines())}
     cell = figures["generalize.cell.budget7"]
     assert cell["value"] == pytest.approx(cell["policy_pct"] / cell["best_pct"], rel=1e-3)
     assert cell["best"] in ("nbv_targets", "nbv_ahead", "nbv_team", "nbv")
     assert figures["generalize.cells_won"]["value"] == int(cell["value"] > 1)
+    for field in ("rate_ceiling", "city_ceiling"):
+        assert figures[f"generalize.geomean_{field}_ratio"]["value"] == pytest.approx(
+            cell[f"{field}_pct"] / cell["best_pct"], rel=1e-3)
