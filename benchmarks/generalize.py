@@ -35,9 +35,9 @@ Usage (from the repository root; about 40 minutes on a 2-core CPU, with --ceilin
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
+from statistics import geometric_mean
 from pathlib import Path
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -100,11 +100,6 @@ def cell_figures(found: dict, worlds: int) -> dict:
     return figures
 
 
-def geomean(values) -> float:
-    values = list(values)
-    return math.exp(sum(map(math.log, values)) / len(values))
-
-
 @entry_point
 def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
@@ -155,11 +150,11 @@ def main(argv=None) -> int:
     cells.close()
     emit("generalize.cells_won", sum(c["policy_pct"] > c["best_pct"] for c in lines), "cells",
          of=len(lines))
-    emit("generalize.geomean_ratio", geomean(c["policy_pct"] / c["best_pct"] for c in lines),
-         "ratio")
+    emit("generalize.geomean_ratio",
+         geometric_mean([c["policy_pct"] / c["best_pct"] for c in lines]), "ratio")
     for field in CEILINGS.values() if args.ceilings else ():
         emit(f"generalize.geomean_{field.removesuffix('_pct')}_ratio",
-             geomean(c[field] / c["best_pct"] for c in lines), "ratio")
+             geometric_mean([c[field] / c["best_pct"] for c in lines]), "ratio")
     return 0
 
 

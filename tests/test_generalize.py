@@ -60,7 +60,7 @@ def test_cell_figures_pick_the_best_classical_and_pair_by_world():
     assert line["best"] == "nbv_ahead"
     assert line["city_ceiling_pct"] == pytest.approx(found["policy"].mean() + 9)
     assert line["rate_ceiling_pct"] == pytest.approx(found["policy"].mean() + 5)
-    assert gen.geomean([2.0, 8.0]) == pytest.approx(4.0)
+    assert gen.geometric_mean([2.0, 8.0]) == pytest.approx(4.0)
 
 
 @pytest.mark.parametrize("arguments", [["--cells", "nope"], ["--worlds", "1"],
