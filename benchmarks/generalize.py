@@ -22,19 +22,26 @@ reach, as the geometric mean over the cells of reference / best classical:
     generalize.geomean_rate_ceiling_ratio
     generalize.geomean_city_ceiling_ratio
 
+--resume FILE reads a previous run's JSON lines (its stdout, e.g. one stopped part-way):
+a cell measured there with the same policy weights (policy_sha256), worlds, trials,
+overrides and references is printed again as it stands rather than run, so a long run
+goes on in pieces and still ends with the summary lines over every cell (write the new run
+to another file: the shell empties a file it redirects into before the script reads it).
+
 Cells: the team budget is the team's; "n6" scales it by N / 3 as the issue of record
 asks, the combined cells take it literally.
 
 Usage (from the repository root; about 40 minutes on a 2-core CPU, with --ceilings about
 8 minutes a cell):
     python benchmarks/generalize.py [--policy DIR] [--worlds 10] [--trials 5]
-                                    [--cells a,b,...] [--ceilings]
+                                    [--cells a,b,...] [--ceilings] [--resume FILE]
                                     [section.key=value ...]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from statistics import geometric_mean
@@ -100,6 +107,31 @@ def cell_figures(found: dict, worlds: int) -> dict:
     return figures
 
 
+def reusable_cells(path: Path, identity: dict, needs: list[str]) -> dict[str, dict]:
+    """The cell lines of a previous run's output at `path` whose fields match `identity`
+    (policy_sha256, worlds, trials, overrides) and that hold every field in `needs`, by
+    cell name. ConfigError for a file that is missing or not JSON lines."""
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise cfgmod.ConfigError(f"--resume {path}: {err.strerror}; allowed: a file this "
+                                 "script wrote (its JSON lines)") from None
+    cells = {}
+    for number, raw in enumerate(text.splitlines(), 1):
+        try:
+            line = json.loads(raw)
+            name = line["name"]
+        except (ValueError, TypeError, KeyError):
+            raise cfgmod.ConfigError(f"--resume {path}: line {number} is not a figure this "
+                                     "script prints; allowed: a file this script wrote (its "
+                                     "JSON lines)") from None
+        cell = name.removeprefix("generalize.cell.")
+        if (cell != name and all(line.get(k) == v for k, v in identity.items())
+                and all(k in line for k in needs)):
+            cells[cell] = line
+    return cells
+
+
 @entry_point
 def main(argv=None) -> int:
     parser = ArgumentParser(description=__doc__,
@@ -112,6 +144,9 @@ def main(argv=None) -> int:
     parser.add_argument("--ceilings", action="store_true",
                         help="also run oracle_rate and oracle_city in every cell "
                              "(upper references)")
+    parser.add_argument("--resume", type=Path, metavar="FILE",
+                        help="a previous run's JSON lines: its cells with the same policy, "
+                             "worlds, trials, overrides and references are reused")
     parser.add_argument("overrides", nargs="*", help="dotted overrides for every cell")
     add_quiet(parser)
     args = parser.parse_args(argv)
@@ -130,13 +165,28 @@ def main(argv=None) -> int:
 
     from jaxmripp import pipeline  # noqa: PLC0415 (after argument errors)
     from jaxmripp.evaluation import sweep  # noqa: PLC0415
+    from jaxmripp.learn.policy import flatten_params  # noqa: PLC0415
     from jaxmripp.parallel import progress  # noqa: PLC0415
+    from jaxmripp.runtime.weights import weights_sha256  # noqa: PLC0415
+
+    # Which policy the figures are of, whatever folder holds it (a run or an export).
+    identity = dict(policy_sha256=weights_sha256(flatten_params(
+        pipeline.trained_params(args.policy))), worlds=args.worlds, trials=args.trials,
+        overrides=args.overrides)
+    needs = ["value", "policy_pct", "best_pct", *(CEILINGS.values() if args.ceilings else ())]
+    reused = reusable_cells(args.resume, identity, needs) if args.resume else {}
 
     emit_text("generalize.command", "python benchmarks/generalize.py "
               + " ".join(argv if argv is not None else sys.argv[1:]))
     lines = []
     cells = progress.bar(len(configs), "cells", unit="cell")
     for name, cfg in configs.items():
+        if name in reused:
+            line = reused[name]
+            print(json.dumps(line), flush=True)  # as measured, on the machine it names
+            lines.append(line)
+            cells.update()
+            continue
         cfg = pipeline.with_policy_inputs(cfg, [args.policy])
         policy = pipeline.sweep_planner(args.policy, cfg,
                                         log=lambda line: print(line, file=sys.stderr))
@@ -144,8 +194,8 @@ def main(argv=None) -> int:
                                  time_planning=False, keep_pictures=False)
         line = cell_figures({r.planner: r.discovered for r in result.runs}, args.worlds)
         lines.append(line)
-        emit(f"generalize.cell.{name}", line.pop("value"), "ratio", **line,
-             worlds=args.worlds, trials=args.trials)
+        emit(f"generalize.cell.{name}", line["value"], "ratio",
+             **{k: v for k, v in line.items() if k != "value"}, **identity)
         cells.update()
     cells.close()
     emit("generalize.cells_won", sum(c["policy_pct"] > c["best_pct"] for c in lines), "cells",

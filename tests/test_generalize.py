@@ -63,8 +63,54 @@ def test_cell_figures_pick_the_best_classical_and_pair_by_world():
     assert gen.geometric_mean([2.0, 8.0]) == pytest.approx(4.0)
 
 
+def _cell_line(cell: str, **fields) -> dict:
+    line = dict(name=f"generalize.cell.{cell}", value=1.02, policy_pct=51.0, best_pct=50.0,
+                policy_sha256="ab", worlds=10, trials=5, overrides=[])
+    return line | fields
+
+
+def test_resume_reuses_only_cells_of_the_same_policy_and_protocol(tmp_path):
+    gen = _module()
+    identity = dict(policy_sha256="ab", worlds=10, trials=5, overrides=[])
+    lines = [{"name": "generalize.command", "value": "python benchmarks/generalize.py"},
+             _cell_line("n2"), _cell_line("n6", policy_sha256="cd"),
+             _cell_line("grid", worlds=2), _cell_line("budget7", overrides=["x.y=1"]),
+             _cell_line("budget14", rate_ceiling_pct=55.0),
+             {"name": "generalize.geomean_ratio", "value": 1.02}]
+    previous = tmp_path / "previous.jsonl"
+    previous.write_text("".join(json.dumps(line) + "\n" for line in lines))
+    assert set(gen.reusable_cells(previous, identity, ["policy_pct", "best_pct"])) == {
+        "n2", "budget14"}
+    assert set(gen.reusable_cells(previous, identity, ["policy_pct", "rate_ceiling_pct"])) == {
+        "budget14"}
+    previous.write_text(previous.read_text() + "compiling ...\n")
+    with pytest.raises(gen.cfgmod.ConfigError, match="line 8"):
+        gen.reusable_cells(previous, identity, [])
+
+
+def test_resume_prints_a_measured_cell_again_and_sums_up_over_it(tmp_path, capsys,
+                                                                  monkeypatch):
+    from jaxmripp import pipeline
+    from jaxmripp.learn.policy import flatten_params
+    from jaxmripp.runtime.weights import weights_sha256
+
+    monkeypatch.chdir(ROOT)
+    sha = weights_sha256(flatten_params(pipeline.trained_params(ROOT / "pretrained/default")))
+    measured = _cell_line("n2", policy_sha256=sha, worlds=3, trials=1, policy_pct=40.0,
+                          best_pct=50.0, device="somewhere")
+    previous = tmp_path / "previous.jsonl"
+    previous.write_text(json.dumps(measured) + "\n")
+    assert _module().main(["--cells", "n2", "--worlds", "3", "--trials", "1", "--resume",
+                           str(previous), "--quiet"]) == 0
+    printed = {r["name"]: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    assert printed["generalize.cell.n2"] == measured  # as it stands, not measured again
+    assert printed["generalize.cells_won"]["value"] == 0
+    assert printed["generalize.geomean_ratio"]["value"] == pytest.approx(0.8)
+
+
 @pytest.mark.parametrize("arguments", [["--cells", "nope"], ["--worlds", "1"],
-                                       ["--policy", "configs"], ["world.buildings=0"]])
+                                       ["--policy", "configs"], ["world.buildings=0"],
+                                       ["--resume", "no/such/file.jsonl"]])
 def test_bad_arguments_are_one_error_line(arguments, capsys, monkeypatch):
     monkeypatch.chdir(ROOT)
     try:
