@@ -48,13 +48,41 @@ else:
 os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
                       str(Path(__file__).resolve().parents[1] / ".pytest_cache" / "jax"))
 
-# Files whose compilations take longest, started first: `make test` hands whole files to two
-# workers in collection order (--no-loadscope-reorder: xdist would otherwise start with the
-# files of most tests), so a long file collected last would run alone at the end.
-LONGEST_FIRST = ("test_train.py", "test_env.py", "test_evaluate.py", "test_runtime_episode.py",
-                 "test_runtime_parity.py", "test_pipeline.py", "test_export.py", "test_marl.py", "test_rig.py")
+# `make test` hands groups of test files to two workers in collection order (--dist
+# loadfile, --no-loadscope-reorder: xdist would otherwise start with the groups of most
+# tests). A group is a file, or files that train or trace the same programs, which one
+# worker then builds once: a process keeps what it traced, while another process would only
+# find the compiled program in the cache above and trace it again.
+SHARED = {"test_train.py": "smoke_run", "test_train_chunks.py": "smoke_run",
+          "test_train_crash.py": "smoke_run"}
+# Groups whose compilations take longest, started first, so that no long one runs alone at
+# the end.
+LONGEST_FIRST = ("smoke_run", "test_lookahead.py", "test_env.py", "test_sweep_dynamic.py",
+                 "test_marl.py", "test_evaluate.py", "test_pipeline.py",
+                 "test_runtime_belief_episode.py", "test_physics.py", "test_view.py",
+                 "test_gp.py", "test_runtime_episode.py", "test_runtime_parity.py")
+
+
+def _group(path: str) -> str:
+    """The group of the test file at `path` (a path or a node id)."""
+    name = path.split("::", 1)[0].rsplit("/", 1)[-1]
+    return SHARED.get(name, name)
 
 
 def pytest_collection_modifyitems(config, items):
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+    items.sort(key=lambda item: rank.get(_group(item.path.name), len(rank)))
+
+
+def pytest_xdist_make_scheduler(config, log):
+    """--dist loadfile by groups of files rather than by file (xdist's loadgroup reads
+    node ids that pytest 9 no longer lets a plugin change)."""
+    if config.getvalue("dist") != "loadfile":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    class FileGroupScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            return _group(nodeid)
+
+    return FileGroupScheduling(config, log)

@@ -158,12 +158,23 @@ class Trainer:
 
     def init(self) -> TrainState:
         key = jax.random.PRNGKey(self.cfg.train.seed)
-        # One compiled program: run eagerly, the initialisers compile op by op (hundreds).
-        params = jax.jit(self.network.init)(jax.random.fold_in(key, PARAMS_SALT),
-                                            initial_memory(self.cfg.policy),
-                                            self.example_observation())
-        return TrainState(params, self.optimizer.init(params), key, jnp.zeros((), jnp.int32),
-                          None)
+        if "init" not in self._cache:
+            # One compiled program, traced once per Trainer: run eagerly, the initialisers
+            # and the optimiser's zeros compile op by op (hundreds).
+            def initial(key):
+                params = self.network.init(jax.random.fold_in(key, PARAMS_SALT),
+                                           initial_memory(self.cfg.policy),
+                                           self.example_observation())
+                return params, self.optimizer.init(params)
+            self._cache["init"] = jax.jit(initial)
+        params, opt_state = self._cache["init"](key)
+        return TrainState(params, opt_state, key, jnp.zeros((), jnp.int32), None)
+
+    def fresh_optimizer_state(self, params):
+        """The optimiser's initial state for `params` (one compiled program)."""
+        if "optimizer init" not in self._cache:
+            self._cache["optimizer init"] = jax.jit(self.optimizer.init)
+        return self._cache["optimizer init"](params)
 
     def abstract_state(self, runner: bool = True, device: jax.Device | None = None) -> TrainState:
         """The state's shapes and layout, for orbax to restore into (nothing is computed):
@@ -200,7 +211,7 @@ class Trainer:
                 f"config's ({first_difference(want, got)}); allowed: a run or export with "
                 "the same policy width, heads, layers, ff_mult and critic")
         params = jax.tree.map(lambda x, like: jnp.asarray(x, like.dtype), params, fresh.params)
-        return fresh.replace(params=params, opt_state=self.optimizer.init(params))
+        return fresh.replace(params=params, opt_state=self.fresh_optimizer_state(params))
 
     def resume(self, checkpoints: Checkpoints, log: Callable[[str], None]) -> TrainState:
         """The last checkpoint, laid out over the devices. A checkpoint without a runner
