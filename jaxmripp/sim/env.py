@@ -12,6 +12,8 @@ GP updates (`jaxmripp.sim.feeding`) -> new candidates -> observations and reward
 
 from __future__ import annotations
 
+import functools
+
 import chex
 import jax
 import jax.numpy as jnp
@@ -30,8 +32,15 @@ from jaxmripp.sim.types import (EnvState, Metrics, StepInfo, discovered_fraction
 
 # ---------------------------------------------------------------------------------------
 # Reset and step
+#
+# reset, step and their shared parts are jitted where they are defined: inside a program
+# (an episode, a rollout, a teacher) a call to them is a nested jit, which JAX traces once
+# per process for each static `params` and argument shapes and then reuses. A sweep over
+# many planners, or training followed by its evaluation, thus traces the environment once
+# instead of once per program (XLA inlines the calls when it compiles).
 
 
+@functools.partial(jax.jit, static_argnames="params")
 def reset(key: chex.PRNGKey, params: EnvParams,
           dyn: DynamicParams) -> tuple[Observation, EnvState]:
     n, size = params.n_robots, params.size
@@ -68,12 +77,13 @@ def reset(key: chex.PRNGKey, params: EnvParams,
     return _observations(key_rest, state, params, dyn), state
 
 
+@functools.partial(jax.jit, static_argnames="params")
 def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvParams,
          dyn: DynamicParams):
     """actions (N,) int32 candidate indices -> (obs, state, reward (N,), done (N,), info)."""
     chex.assert_shape(actions, (params.n_robots,))
     moved, moving = _move(state, actions, params, dyn)
-    state, parts = _after_move(key, moved, moving, params, dyn)
+    state, parts = _after_move(key, moved.replace(candidates=None), moving, params, dyn)
     reward = dyn.alpha * parts.reward_exploration + dyn.beta * parts.reward_discovery \
         + dyn.gamma * parts.reward_communication
     reward = jnp.where(moving, reward, 0.0)
@@ -81,6 +91,7 @@ def step(key: chex.PRNGKey, state: EnvState, actions: jax.Array, params: EnvPara
     return _observations(key, state, params, dyn), state, reward, state.done, info
 
 
+@functools.partial(jax.jit, static_argnames="params")
 def _observations(key, state: EnvState, params: EnvParams, dyn: DynamicParams) -> Observation:
     """The team's observations with the lookahead input; the belief's facade rates are
     computed once for both."""
@@ -159,8 +170,12 @@ def _move(state: EnvState, actions, params: EnvParams, dyn: DynamicParams):
     return moved, moving
 
 
+@functools.partial(jax.jit, static_argnames="params")
 def _after_move(key, state: EnvState, moved, params: EnvParams, dyn: DynamicParams):
-    """Sensing, history, radio, GP updates and new candidates after the robots moved."""
+    """Sensing, history, radio, GP updates and new candidates after the robots moved.
+
+    `state` comes without candidates (None): this computes them afresh, so reset and
+    step hand it the same structure and share its trace."""
     n, size = params.n_robots, params.size
     casts = jax.vmap(sensing.cast, in_axes=(None, 0, 0, None, None))(
         state.world, state.position, state.heading, params.sensor, size)
