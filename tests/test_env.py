@@ -700,3 +700,25 @@ def test_random_finds_more_than_greedy_on_table_one_in_the_paper_world():
     print(f"paper world, Table I setting: random {found['random'].mean():.2f}%, "
           f"greedy {found['greedy'].mean():.2f}%")
     assert found["random"].mean() > found["greedy"].mean()
+
+
+def test_programs_that_run_the_env_share_one_trace_of_it(monkeypatch):
+    """reset and step are traced once per process for each static setting and argument
+    shapes, whichever program calls them (alone, within an episode, vmapped): the part
+    they share, sensing to candidates, runs its Python code once for all of them."""
+    cfg = config.load(REPO / "tests/smoke.yaml", ["episode.max_steps=5"])  # no other test's
+    params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
+    fed = []
+    monkeypatch.setattr(envmod, "feed_gps", lambda *args: fed.append(1) or feeding.feed_gps(*args))
+
+    def first_step(key):
+        _, state = envmod.reset(key, params, dyn)
+        actions = jnp.zeros((params.n_robots,), jnp.int32)
+        return envmod.step(key, state, actions, params, dyn)[2]
+
+    key = jax.random.key(0)
+    jax.jit(lambda k: envmod.reset(k, params, dyn)).lower(key)
+    assert len(fed) == 1
+    jax.jit(first_step).lower(key)
+    jax.jit(jax.vmap(first_step)).lower(jax.random.split(key, 3))
+    assert len(fed) == 1
