@@ -17,6 +17,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 
 def _with_flag(flag: str) -> str:
     return f"{os.environ.get('XLA_FLAGS', '')} {flag}".strip()
@@ -86,3 +88,15 @@ def pytest_xdist_make_scheduler(config, log):
             return _group(nodeid)
 
     return FileGroupScheduling(config, log)
+
+
+@pytest.fixture(autouse=True)
+def _progress_as_it_was():
+    """A command's --quiet switches progress off for its whole process
+    (`progress.set_quiet`); a test that runs one in-process must not silence the tests that
+    follow it in the same worker."""
+    from jaxmripp.parallel import progress  # noqa: PLC0415 (jax after the flags above)
+
+    quiet = progress._QUIET
+    yield
+    progress.set_quiet(quiet)
