@@ -14,6 +14,7 @@ bit on every device count that divides `blocks`.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import chex
@@ -100,11 +101,18 @@ def make_optimizer(cfg: PPOConfig) -> optax.GradientTransformation:
                        optax.adam(schedule, eps=1e-5))
 
 
+@functools.partial(jax.jit, static_argnames="network", inline=True)
+def _apply(network: ActorCritic, params, memory, obs: Observation):
+    """One robot's step of the network. Jitted and inlined as `jaxmripp.sim.env` does: the
+    rollout, the critic's values and the loss trace it once between them."""
+    return network.apply(params, memory, obs)
+
+
 def apply_batched(network: ActorCritic, params, memory, obs: Observation):
     """Applies the single-robot network over any leading axes of memory / obs."""
     lead = memory.shape[:-1]
     flat = lambda x: x.reshape((-1, *x.shape[len(lead):]))
-    fn = jax.vmap(lambda m, o: network.apply(params, m, o))
+    fn = jax.vmap(lambda m, o: _apply(network, params, m, o))
     new_memory, logits, value = fn(flat(memory), jax.tree.map(flat, obs))
     unflat = lambda x: x.reshape((*lead, *x.shape[1:]))
     return unflat(new_memory), unflat(logits), unflat(value)
