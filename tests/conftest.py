@@ -91,12 +91,11 @@ def pytest_xdist_make_scheduler(config, log):
 
 
 @pytest.fixture(autouse=True)
-def _progress_as_it_was():
+def _progress_not_quiet_after():
     """A command's --quiet switches progress off for its whole process
     (`progress.set_quiet`); a test that runs one in-process must not silence the tests that
-    follow it in the same worker."""
+    follow it in the same worker, so each test ends with progress back to its default."""
+    yield
     from jaxmripp.parallel import progress  # noqa: PLC0415 (jax after the flags above)
 
-    quiet = progress._QUIET
-    yield
-    progress.set_quiet(quiet)
+    progress.set_quiet(False)

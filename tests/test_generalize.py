@@ -100,9 +100,8 @@ def test_resume_prints_a_measured_cell_again_and_sums_up_over_it(tmp_path, capsy
                           best_pct=50.0, device="somewhere")
     previous = tmp_path / "previous.jsonl"
     previous.write_text(json.dumps(measured) + "\n")
-    # Not --quiet: it silences progress for the whole process, and later tests with it.
     assert _module().main(["--cells", "n2", "--worlds", "3", "--trials", "1", "--resume",
-                           str(previous)]) == 0
+                           str(previous), "--quiet"]) == 0
     printed = {r["name"]: r for r in map(json.loads, capsys.readouterr().out.splitlines())}
     assert printed["generalize.cell.n2"] == measured  # as it stands, not measured again
     assert printed["generalize.cells_won"]["value"] == 0
