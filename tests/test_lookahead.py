@@ -218,7 +218,9 @@ def _run_episodes(setting: str, seed: int):
     return cfg, out
 
 
-@pytest.fixture(scope="module", params=["view", "rated"])
+# The unrated input ("view") ships in no policy (pretrained/default reads the rated one),
+# and its program compiles for about 20 s: slow.
+@pytest.fixture(scope="module", params=[pytest.param("view", marks=pytest.mark.slow), "rated"])
 def ahead_episodes(request):
     cfg, (obs, state, step_keys) = _run_episodes(request.param, 11)
     return cfg, jax.tree.map(np.asarray, (obs, state)), step_keys
@@ -281,6 +283,7 @@ def test_ahead_input_matches_the_numpy_runtime(ahead_episodes):
     assert followed >= 6 and improved >= 6 and near_ties <= followed
 
 
+@pytest.mark.slow  # compiles the unrated episodes too
 def test_the_rated_input_reads_the_belief_and_the_rest_is_unchanged():
     """On the same episodes, rating the lookahead input changes that column alone (the
     flights, maps and other inputs are the same), and changes it."""

@@ -33,6 +33,8 @@ def _same_run(a_dir, a, b_dir, b):
     assert untimed(a_dir) == untimed(b_dir)
 
 
+# Slow: one chunk of three updates is a program of its own (about 20 s of compiling).
+@pytest.mark.slow
 def test_a_run_trains_the_same_whatever_its_chunk_size(cfg, full_run, tmp_path):
     """One chunk of all the run's updates against the fixture's one-update chunks."""
     run_dir = tmp_path / "one_chunk"
