@@ -1,6 +1,7 @@
 """Evaluation sweeps: one compilation per shape, determinism, statistics, written outputs."""
 
 import csv
+import dataclasses
 import json
 import math
 import subprocess
@@ -19,8 +20,8 @@ from jaxmripp.parallel.local import host_devices_env
 ROOT = Path(__file__).resolve().parents[1]
 FAST = {"xla_backend_optimization_level": 0}  # compile fast; these tests run tiny worlds
 TINY = ["world.size=20", "robots.start=[0.0, 0.0, 0.5]", "candidates.positions=4",
-        "candidates.oversample=3", "eval.planners=[random]", "eval.team_sizes=[1, 2]",
-        "eval.world_sizes=[20]", "eval.radio_ranges=[.inf]", "eval.budgets=[1.5]",
+        "candidates.oversample=3", "eval.planners=[random]", "eval.team_sizes=[2]",
+        "eval.world_sizes=[20]", "eval.radio_ranges=[.inf]", "eval.budgets=[1.5, 2.0]",
         "eval.worlds=3", "eval.trials=2", "eval.seed=7"]
 
 
@@ -125,7 +126,8 @@ def test_evaluations_of_a_shipped_policy_leave_its_folder_as_shipped(tmp_path):
 
 
 # ---------------------------------------------------------------------------------------
-# A tiny sweep: 2 shapes x 1 planner, 6 episodes each in chunks of 4 (one padded chunk)
+# A tiny sweep: 2 shapes (two budgets: one program) x 1 planner, 6 episodes each in
+# chunks of 4 (one padded chunk)
 
 
 @pytest.fixture(scope="module")
@@ -140,17 +142,27 @@ def tiny_sweep(tmp_path_factory):
     return cfg, result, lines, out, paths
 
 
-def test_one_compile_per_shape(tiny_sweep):
+def test_one_compile_per_team_and_world_size(tiny_sweep):
     cfg, result, lines, _, _ = tiny_sweep
     shapes = sweep.shapes_of(cfg)
     assert len(shapes) == 2 and len(lines) == 2
-    # One trace per planner and (N, G), though each ran in 2 chunks.
-    assert dict(cells.TRACES) == {("random", s.n_robots, s.size): 1 for s in shapes}
+    # One trace for both budgets (the budget is a traced value), though each ran in 2 chunks.
+    assert dict(cells.TRACES) == {("random", 2, 20): 1}
     for run in result.runs:
         assert len(run.discovered) == 6 and run.discovered.shape == run.steps.shape
         assert np.all((run.discovered >= 0) & (run.discovered <= 100))
         assert np.isfinite(run.plan_ms_per_robot_step) and run.ms_per_robot_step > 0
-    assert "compile" in lines[0] and "N = 1, G = 20" in lines[0]
+    assert "compile" in lines[0] and "N = 2, G = 20" in lines[0]
+
+
+def test_static_groups_split_by_team_and_world_size_in_order_of_appearance():
+    """What each compilation covers: the shapes of one team and world size (the sweep's
+    other cells run in the same program, tests/test_sweep_dynamic.py)."""
+    shape = lambda n, g, b: cells.Shape(n_robots=n, size=g, radio_range=0.1, budget=b)  # noqa: E731
+    shapes = [shape(2, 20, 1.0), shape(1, 20, 1.0), shape(2, 30, 1.0), shape(2, 20, 2.0),
+              shape(1, 20, 3.0)]
+    assert sweep.static_groups(shapes) == [[shapes[0], shapes[3]], [shapes[1], shapes[4]],
+                                           [shapes[2]]]
 
 
 def test_worlds_shared_across_shapes(tiny_sweep):
@@ -166,7 +178,8 @@ def test_worlds_shared_across_shapes(tiny_sweep):
 def test_outputs_written(tiny_sweep):
     _, result, _, out, paths = tiny_sweep
     for key in ("table", "csv", "json", "summary", "discovered_vs_budget_0.png",
-                "team_size", "episode_random", "gif_random", "missed_windows_0.png"):
+                "discovered_vs_budget_1.png", "episode_random", "gif_random",
+                "missed_windows_0.png", "missed_windows_1.png"):
         assert paths[key].is_file() and paths[key].stat().st_size > 0, key
     table = (out / "results.md").read_text()
     assert "| random |" in table and "95% CI" in table
@@ -179,6 +192,20 @@ def test_outputs_written(tiny_sweep):
     from PIL import Image
     with Image.open(paths["gif_random"]) as gif:
         assert gif.n_frames >= 1
+    assert "team_size" not in paths  # one team size: no plot over team sizes
+
+
+def test_a_sweep_over_team_sizes_plots_the_discovery_by_team_size(tiny_sweep, tmp_path):
+    """The same runs relabelled as a second team size (the plot reads only the labels and
+    the figures): the plot over team sizes appears, and the table has a row per size."""
+    _, result, _, _, _ = tiny_sweep
+    relabelled = [dataclasses.replace(run, shape=dataclasses.replace(run.shape, n_robots=1))
+                  for run in result.runs]
+    paths = outputs.write_outputs(sweep.SweepResult(result.runs + relabelled, result.pairs),
+                                  tmp_path, render=False)
+    assert paths["team_size"].is_file() and paths["team_size"].stat().st_size > 0
+    table = (tmp_path / "results.md").read_text()
+    assert "N = 1, G = 20" in table and "N = 2, G = 20" in table
 
 
 def _cli():

@@ -126,7 +126,7 @@ def test_closest_approach_hand_worked():
 
 def test_closest_approach_matches_time_sampling():
     rng = np.random.default_rng(0)
-    a0, a1, b0, b1 = (rng.uniform(0, 1, (300, 3)).astype(np.float32) for _ in range(4))
+    a0, a1, b0, b1 = (rng.uniform(0, 1, (100, 3)).astype(np.float32) for _ in range(4))
     got = np.asarray(flight.closest_approach(*map(jnp.asarray, (a0, a1, b0, b1))))
     t = np.linspace(0, 2, 20_001)[:, None, None]
 

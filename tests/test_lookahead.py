@@ -141,6 +141,10 @@ def chosen():
     return {d: jax.tree.map(np.asarray, run(keys, jnp.float32(d))) for d in (0.0, 1.0)}
 
 
+# The choices' program is one of its own (about 13 s): slow. make test keeps the values
+# they maximise against the NumPy reference (test_two_flight_values_match_a_numpy_reference)
+# and the rated search's values against the runtime (test_ahead_input_matches_the_numpy_runtime).
+@pytest.mark.slow
 def test_discount_zero_chooses_as_nbv_team_and_all_choices_are_feasible(chosen):
     obs, actions = chosen[0.0]  # actions (worlds, flights 2 and 3, robots)
     robot0 = obs.features[:, 0]  # robot 0 decides on its own observation
@@ -155,6 +159,7 @@ def test_discount_zero_chooses_as_nbv_team_and_all_choices_are_feasible(chosen):
             assert np.all(picked | ~obs.mask.any(-1)), d
 
 
+@pytest.mark.slow
 def test_looking_ahead_changes_some_choices(chosen):
     """With discount 1 later flights matter: on 8 worlds x 2 robots some choice differs
     from the one-step choice, for two flights and for three (else dead code)."""

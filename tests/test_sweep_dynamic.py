@@ -53,6 +53,15 @@ def _same_episodes(run, alone):
     np.testing.assert_array_equal(run.curve_budget, alone.trajectory.budget_used)
 
 
+def test_the_traced_values_reach_the_episodes(swept):
+    """rho sets the contacts, B the distance flown."""
+    result, _ = swept
+    by_cell = {(r.shape.radio_range, r.shape.budget): r for r in result.runs}
+    assert by_cell[(0.1, 2.0)].contacts.sum() < by_cell[(float("inf"), 2.0)].contacts.sum()
+    assert by_cell[(0.3, 1.0)].distance.sum() < by_cell[(0.3, 2.0)].distance.sum()
+
+
+@pytest.mark.slow  # a second program (about 14 s); the values traced are what JAX vmaps
 def test_each_cell_equals_a_run_of_its_own(swept):
     """Each cell again in a call of its own (one compilation with the values traced)."""
     result, _ = swept
@@ -66,7 +75,3 @@ def test_each_cell_equals_a_run_of_its_own(swept):
     for run in result.runs:
         _same_episodes(run, one_cell(wk, tk, evaluate.eval_dynamic(
             CFG, run.shape.budget, run.shape.radio_range)))
-    # The dynamic values did reach the episodes: rho sets the contacts, B the distance.
-    by_cell = {(r.shape.radio_range, r.shape.budget): r for r in result.runs}
-    assert by_cell[(0.1, 2.0)].contacts.sum() < by_cell[(float("inf"), 2.0)].contacts.sum()
-    assert by_cell[(0.3, 1.0)].distance.sum() < by_cell[(0.3, 2.0)].distance.sum()
