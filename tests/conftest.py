@@ -56,13 +56,15 @@ os.environ.setdefault("JAX_COMPILATION_CACHE_DIR",
 # worker then builds once: a process keeps what it traced, while another process would only
 # find the compiled program in the cache above and trace it again.
 SHARED = {"test_train.py": "smoke_run", "test_train_chunks.py": "smoke_run",
-          "test_train_crash.py": "smoke_run"}
+          "test_train_crash.py": "smoke_run", "test_runtime_episode.py": "runtime_env",
+          "test_runtime_parity.py": "runtime_env", "test_view.py": "view_env",
+          "test_sectors.py": "view_env"}
 # Groups whose compilations take longest, started first, so that no long one runs alone at
 # the end.
-LONGEST_FIRST = ("smoke_run", "test_lookahead.py", "test_env.py", "test_sweep_dynamic.py",
+LONGEST_FIRST = ("smoke_run", "test_env.py", "test_lookahead.py", "runtime_env",
                  "test_marl.py", "test_evaluate.py", "test_pipeline.py",
-                 "test_runtime_belief_episode.py", "test_physics.py", "test_view.py",
-                 "test_gp.py", "test_runtime_episode.py", "test_runtime_parity.py")
+                 "test_runtime_belief_episode.py", "view_env", "test_gp.py",
+                 "test_sweep_dynamic.py", "test_physics.py")
 
 
 def _group(path: str) -> str:

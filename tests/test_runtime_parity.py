@@ -53,11 +53,10 @@ from scipy import stats
 from jaxmripp import config, export
 from jaxmripp.runtime import Candidates, OnboardPlanner, team_key
 from jaxmripp.sim import candidates as jax_candidates
-from jaxmripp.sim import comms, env as envmod, gp as jax_gp, sensing
-from jaxmripp.sim.params import DynamicParams
+from jaxmripp.sim import comms, env as envmod, gp as jax_gp
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, N_HEADINGS
 from test_runtime import EXPECTED_FEATURES, EXPECTED_ROBOT_STATE, REPO
-from test_runtime_episode import point_to_segment, share_maps
+from test_runtime_episode import make_sim, point_to_segment, share_maps
 from test_runtime_flight import interval_reference
 
 # gp.catchup_rounds = 0 leaves the feeding 2 rounds for 2 peers and none to catch up, so
@@ -78,12 +77,8 @@ class JaxSide:
     def __init__(self, cfg):
         self.params = p = envmod.EnvParams.from_config(cfg)
         self.radio_range = cfg.radio.range
-        dyn = DynamicParams.from_config(cfg)
-        self._reset = jax.jit(lambda key: envmod.reset(key, p, dyn))
-        self._step = jax.jit(lambda key, state, actions: envmod.step(key, state, actions, p,
-                                                                     dyn))
-        self._cast = jax.jit(jax.vmap(lambda w, q, h: sensing.cast(w, q, h, p.sensor, p.size),
-                                      in_axes=(None, 0, 0)))
+        sim = make_sim(cfg)  # test_runtime_episode's programs, the same environment
+        self._reset, self._step, self._cast = sim.reset, sim.step, sim.cast
         self._predict = jax.jit(lambda g, poses: jax_gp.predict(g, poses, p.gp))
 
     def reset(self, seed):

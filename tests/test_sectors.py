@@ -80,7 +80,9 @@ def test_robots_in_sectors_are_offered_only_their_own_views():
     """After a few steps of a 3-robot team, each robot's offered candidates are those of
     its sector with view gain (checked against NumPy azimuths), or its whole mask, and a
     planner deployed with sectors picks among them."""
-    cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 8}})
+    # test_view's environment: the worker that runs both files (tests/conftest.py)
+    # compiles its reset once.
+    cfg = from_dict({"world": {"size": 20}, "candidates": {"positions": 6}})
     params, dyn = EnvParams.from_config(cfg), DynamicParams.from_config(cfg)
     obs, state = jax.jit(env.reset, static_argnums=1)(jax.random.PRNGKey(8), params, dyn)
     step = jax.jit(env.step, static_argnums=3)
