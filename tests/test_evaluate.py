@@ -1,4 +1,5 @@
-"""Evaluation sweeps: one compilation per shape, determinism, statistics, written outputs."""
+"""Evaluation sweeps: one compilation per team and world size, determinism, statistics, written
+outputs."""
 
 import csv
 import dataclasses
