@@ -8,6 +8,7 @@ import matplotlib
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
+from matplotlib.ticker import EngFormatter  # noqa: E402
 import numpy as np  # noqa: E402
 
 ROBOT_COLOURS = plt.get_cmap("tab10").colors
@@ -95,6 +96,7 @@ def learning_curve(path, records: list[dict], keys=("discovered", "return")) -> 
             x, y = zip(*points)
             ax.plot(x, y, "-o", markersize=3)
         ax.set(xlabel="agent steps (robot decisions)", ylabel=key, title=key)
+        ax.xaxis.set_major_formatter(EngFormatter(sep=""))  # 150k: six-digit labels collide
         ax.grid(alpha=0.3)
     return save_figure(fig, path)
 
