@@ -41,8 +41,10 @@ from jaxmripp.spec.layout import FEATURES
 from test_runtime import REPO, init_params
 from test_runtime_flight import interval_reference
 
-# test_runtime_parity's environment (gp.catchup_rounds=0 matters there): the worker that
-# runs both files (tests/conftest.py) builds its programs once, through make_sim.
+# Also test_runtime_parity's environment: the worker that runs both files
+# (tests/conftest.py) builds its programs once, through make_sim. gp.catchup_rounds = 0
+# leaves the feeding 2 rounds for 2 peers and none to catch up, so backlogs build up and
+# which peer each round picks matters (the parity episodes check the picks).
 CFG = config.load(REPO / "tests/smoke.yaml", [
     "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
     "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0"])

@@ -50,20 +50,15 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxmripp import config, export
+from jaxmripp import export
 from jaxmripp.runtime import Candidates, OnboardPlanner, team_key
 from jaxmripp.sim import candidates as jax_candidates
-from jaxmripp.sim import comms, env as envmod, gp as jax_gp
+from jaxmripp.sim import comms, gp as jax_gp
 from jaxmripp.spec.grid import FREE, HEADING_ANGLES, N_HEADINGS
 from test_runtime import EXPECTED_FEATURES, EXPECTED_ROBOT_STATE, REPO
-from test_runtime_episode import make_sim, point_to_segment, share_maps
+from test_runtime_episode import CFG, make_sim, point_to_segment, share_maps
 from test_runtime_flight import interval_reference
 
-# gp.catchup_rounds = 0 leaves the feeding 2 rounds for 2 peers and none to catch up, so
-# backlogs build up and which peer each round picks matters.
-CFG = config.load(REPO / "tests/smoke.yaml", [
-    "world.size=30", "robots.count=3", "robots.budget=[4.0, 4.0]",
-    "candidates.positions=8", "candidates.oversample=3", "gp.catchup_rounds=0"])
 SEEDS = tuple(range(8))  # the episodes are cheap next to compiling the env
 KAPPA, LAM = 1.0, 0.5  # both GPs enter the greedy score
 COL = {name: k for k, name in enumerate(EXPECTED_FEATURES)}
@@ -75,9 +70,9 @@ class JaxSide:
     """Every call into the JAX env and its parts, in one place."""
 
     def __init__(self, cfg):
-        self.params = p = envmod.EnvParams.from_config(cfg)
-        self.radio_range = cfg.radio.range
         sim = make_sim(cfg)  # test_runtime_episode's programs, the same environment
+        self.params = p = sim.params
+        self.radio_range = sim.radio_range
         self._reset, self._step, self._cast = sim.reset, sim.step, sim.cast
         self._predict = jax.jit(lambda g, poses: jax_gp.predict(g, poses, p.gp))
 
