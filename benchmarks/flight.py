@@ -3,9 +3,12 @@ view) on simulated quadrotors, over W cities (`jaxmripp.flight`).
 
     python benchmarks/flight.py [--export pretrained/default] [--worlds 5]
         [--planners policy,random,nbv] [--budget 7.0] [--footprints 2,5]
+        [--radio-range RHO]
+    python benchmarks/flight.py --combine SEED0.jsonl SEED1.jsonl SEED2.jsonl
 
 Every planner flies the same cities (seeds first_seed .. first_seed + W - 1, random
-layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export). Prints
+layout, building sides of 2 to 5 voxels, 60 m x 60 m x 30 m, N from the export), every
+planner at the export's radio range (`radio.range`) unless --radio-range is given. Prints
 JSON lines: flight.<planner>_pct (mean, with std and 95% half-width),
 flight.policy_vs_random, flight.policy_vs_nbv (with nbv flown; flight.policy_vs_nbv_p the
 paired t-test over the cities), flight.crashes (all planners, all missions),
@@ -16,11 +19,18 @@ flight.late_arrivals, flight.false_free_voxels (building voxels some map held FR
 by the depth rule), flight.refused_messages (the drones fly a signed radio, a team key
 from each city's seed: none refused in an honest team) and flight.map_conflicts (voxels
 of merged map deltas one drone held FREE and another OCCUPIED; OCCUPIED is kept).
+
+--combine reads this script's output for each training seed of one recipe (flown on the
+same cities, with the same planners and range: their nbv and random figures must agree) and
+prints the figures over seeds instead of flying: flight.recipe_seeds,
+flight.recipe_mean_pct, flight.recipe_std_pct (over seeds), flight.recipe_policy_vs_nbv
+(the mean over seeds / nbv) and flight.recipe_crashes (every seed's missions).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import math
 import os
 import sys
@@ -46,8 +56,16 @@ def main(argv=None) -> None:
     parser.add_argument("--budget", type=float, default=7.0)
     parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
                         help="building sides drawn from LO..HI voxels")
+    parser.add_argument("--radio-range", type=float, default=None,
+                        help="fly every planner at this range (> 0, inf allowed) instead "
+                             "of the export's radio.range")
+    parser.add_argument("--combine", nargs="+", type=Path, metavar="FILE",
+                        help="print the figures over training seeds from each seed's "
+                             "output of this script instead of flying")
     add_quiet(parser)
     args = parser.parse_args(argv)
+    if args.combine:
+        return combine(args.combine, parser)
     planners = args.planners.split(",")
     if args.worlds < 1 or "policy" not in planners or "random" not in planners:
         parser.error("--worlds must be >= 1 and --planners must include policy and random")
@@ -58,7 +76,7 @@ def main(argv=None) -> None:
     from jaxmripp.flight.team import load_team, parse_footprints
 
     try:
-        team = load_team(args.export, parse_footprints(args.footprints))
+        team = load_team(args.export, parse_footprints(args.footprints), args.radio_range)
     except ValueError as error:
         parser.error(str(error))
     settings = MissionSettings(budget=args.budget)
@@ -103,6 +121,35 @@ def main(argv=None) -> None:
     emit("flight.false_free_voxels", sum(r.false_free for r in every), "count")
     emit("flight.refused_messages", sum(r.refused_messages for r in every), "count")
     emit("flight.map_conflicts", sum(r.map_conflicts for r in every), "count")
+
+
+def combine(files: list[Path], parser: argparse.ArgumentParser) -> int:
+    """The recipe's figures over its seeds' flights (see the module docstring)."""
+    allowed = "allowed: two or more outputs of benchmarks/flight.py, one per training seed"
+    if len(files) < 2:
+        parser.error(f"--combine: got {len(files)} file; {allowed}")
+    seeds = []
+    for file in files:
+        try:
+            lines = {r["name"]: r for r in map(json.loads, file.read_text().splitlines())}
+            seeds.append({name: lines[f"flight.{name}"]["value"] for name in
+                          ("policy_pct", "nbv_pct", "random_pct", "crashes")}
+                         | {"worlds": lines["flight.policy_pct"]["worlds"]})
+        except (OSError, ValueError, KeyError, TypeError) as error:
+            parser.error(f"--combine {file}: {type(error).__name__} {error}; {allowed} "
+                         "with nbv flown")
+    for key in ("worlds", "nbv_pct", "random_pct"):
+        if len({seed[key] for seed in seeds}) > 1:
+            parser.error(f"--combine: the files' {key} differ "
+                         f"({', '.join(str(seed[key]) for seed in seeds)}); {allowed}, "
+                         "flown on the same cities at the same radio range")
+    pct = np.array([seed["policy_pct"] for seed in seeds])
+    emit("flight.recipe_seeds", len(pct), "count")
+    emit("flight.recipe_mean_pct", pct.mean(), "%", worlds=seeds[0]["worlds"])
+    emit("flight.recipe_std_pct", pct.std(ddof=1), "%")
+    emit("flight.recipe_policy_vs_nbv", pct.mean() / seeds[0]["nbv_pct"], "ratio")
+    emit("flight.recipe_crashes", sum(seed["crashes"] for seed in seeds), "count")
+    return 0
 
 
 if __name__ == "__main__":

@@ -125,3 +125,34 @@ def test_quality_seed_statistics_name_the_median_seed(monkeypatch, capsys):
     error = capsys.readouterr().err.strip().splitlines()
     assert error == ["error: --policy / --seeds: give one of them; allowed: --policy DIR "
                      "(repeated: distinct policies) or --seeds DIR DIR ... (one recipe's seeds)"]
+
+
+def test_flight_combines_seeds_flown_on_the_same_cities_and_refuses_others(tmp_path, capsys):
+    """flight.py --combine: the mean and sample std of the seeds' policy figures, the mean
+    over nbv's; files whose nbv or random figures differ flew other cities (or ranges)."""
+    flight = load_script("benchmarks/flight.py")
+
+    def flown(name, policy, nbv=56.0, random=18.0, crashes=0):
+        lines = [{"name": f"flight.{planner}_pct", "value": value, "unit": "%", "worlds": 10}
+                 for planner, value in (("policy", policy), ("random", random), ("nbv", nbv))]
+        lines.append({"name": "flight.crashes", "value": crashes, "unit": "count"})
+        (tmp_path / name).write_text("".join(json.dumps(line) + "\n" for line in lines))
+        return str(tmp_path / name)
+
+    policy = [58.0, 60.5, 65.0]
+    files = [flown(f"s{i}.jsonl", pct, crashes=i) for i, pct in enumerate(policy)]
+    assert flight.main(["--combine", *files]) == 0
+    lines = {r["name"]: r["value"] for r in map(json.loads, capsys.readouterr().out.splitlines())}
+    assert lines["flight.recipe_seeds"] == 3
+    assert lines["flight.recipe_mean_pct"] == pytest.approx(61.1667, abs=1e-4)
+    assert lines["flight.recipe_std_pct"] == pytest.approx(3.5473, abs=1e-4)  # ddof = 1
+    assert lines["flight.recipe_policy_vs_nbv"] == pytest.approx(61.1667 / 56.0, abs=1e-4)
+    assert lines["flight.recipe_crashes"] == 3
+    for other, expected in (([flown("far.jsonl", 59.0, nbv=55.0)], "the files' nbv_pct differ"),
+                            ([], "got 1 file"),
+                            ([str(tmp_path / "absent.jsonl")], "absent.jsonl: FileNotFoundError")):
+        with pytest.raises(SystemExit) as refused:
+            flight.main(["--combine", files[0], *other])
+        assert refused.value.code == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and error[0].startswith("error: --combine") and expected in error[0]

@@ -4,6 +4,7 @@ and one short mission of the shipped policy."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -18,6 +19,7 @@ from jaxmripp.flight.mission import MissionSettings, camera_for, fly_mission  # 
 from jaxmripp.flight.scene import Scene  # noqa: E402
 from jaxmripp.flight.team import load_team  # noqa: E402
 from jaxmripp.runtime.depth import DepthCamera  # noqa: E402
+from scripts import load_script  # noqa: E402
 from test_runtime_depth import LOOK_X, box_depth  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
@@ -160,6 +162,21 @@ def test_contacts_are_crashes():
     assert first == {0: "building", 1: "ground"}  # drone 0 then tumbles to the ground
     # Each contact counts once when it begins: a few events, not one per step.
     assert len(scene.crashes) < 20
+
+
+def test_a_team_flies_at_a_radio_range_given_instead_of_the_exports(capsys):
+    team = load_team(REPO / "pretrained/default")
+    near = load_team(REPO / "pretrained/default", radio_range=0.3)
+    assert team.spec.radio_range != 0.3
+    assert near.spec == dataclasses.replace(team.spec, radio_range=0.3)
+    flight = load_script("benchmarks/flight.py")
+    for bad in ("0", "-0.5", "nan"):
+        with pytest.raises(SystemExit) as refused:
+            flight.main(["--radio-range", bad, "--worlds", "1"])
+        assert refused.value.code == 2
+        error = capsys.readouterr().err.strip().splitlines()
+        assert len(error) == 1 and error[0].startswith(f"error: radio range: got {float(bad)}")
+        assert "allowed: a number > 0" in error[0]
 
 
 def test_a_short_mission_of_the_shipped_policy_is_safe():

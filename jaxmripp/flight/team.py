@@ -25,11 +25,13 @@ class Team:
     pad_spacing: float
 
 
-def load_team(export: Path, footprints: tuple[int, int] | None = None) -> Team:
+def load_team(export: Path, footprints: tuple[int, int] | None = None,
+              radio_range: float | None = None) -> Team:
     """The exported policy in `export` and its world: config.yaml beside policy.json if
     there is one (else the default config's world) at the export's size, random layout
     (the test layout), the largest window count; footprints (lo, hi): building sides drawn
-    from lo .. hi voxels instead of the trained world's squares."""
+    from lo .. hi voxels instead of the trained world's squares; radio_range: the team's
+    radio range (> 0, inf allowed) instead of the export's `radio.range`."""
     from jaxmripp import config as cfgmod
 
     exported = fmt.load(export)
@@ -43,7 +45,13 @@ def load_team(export: Path, footprints: tuple[int, int] | None = None) -> Team:
         world.update(footprint_min=0 if lo == hi else lo, footprint=hi)
     world = cfgmod.from_dict({"world": world}, base=cfg).world  # validated
     spacing = exported.header["config"]["robots"].get("pad_spacing", cfg.robots.pad_spacing)
-    return Team(exported.spec, exported, world, float(spacing))
+    spec = exported.spec
+    if radio_range is not None:
+        if not radio_range > 0:  # NaN fails too
+            raise ValueError(f"radio range: got {radio_range}; allowed: a number > 0 "
+                             "(inf: every robot hears every other)")
+        spec = dataclasses.replace(spec, radio_range=float(radio_range))
+    return Team(spec, exported, world, float(spacing))
 
 
 DEFAULT_FOOTPRINTS = (2, 5)  # building sides in voxels (2.4 m to 6 m in the default box)
