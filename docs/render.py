@@ -196,7 +196,8 @@ def alternatives_table(root: Path, path: str) -> list[str]:
 def _number(value) -> str:
     if isinstance(value, int) or float(value).is_integer():
         return f"{int(value):,}"
-    return f"{value:,.3g}" if abs(value) < 10 else f"{value:,.1f}"
+    # four significant digits: a ratio such as 1.046 must not read as its target 1.05
+    return f"{value:,.4g}" if abs(value) < 10 else f"{value:,.1f}"
 
 
 def benchmarks_table(root: Path, path: str) -> list[str]:
