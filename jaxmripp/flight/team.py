@@ -34,6 +34,9 @@ def load_team(export: Path, footprints: tuple[int, int] | None = None,
     radio range (> 0, inf allowed) instead of the export's `radio.range`."""
     from jaxmripp import config as cfgmod
 
+    if radio_range is not None and not radio_range > 0:  # NaN fails too
+        raise ValueError(f"radio range: got {radio_range}; allowed: a number > 0 "
+                         "(inf: every robot hears every other)")
     exported = fmt.load(export)
     directory = Path(export) if Path(export).is_dir() else Path(export).parent
     cfg = cfgmod.load(directory / "config.yaml" if (directory / "config.yaml").exists()
@@ -47,9 +50,6 @@ def load_team(export: Path, footprints: tuple[int, int] | None = None,
     spacing = exported.header["config"]["robots"].get("pad_spacing", cfg.robots.pad_spacing)
     spec = exported.spec
     if radio_range is not None:
-        if not radio_range > 0:  # NaN fails too
-            raise ValueError(f"radio range: got {radio_range}; allowed: a number > 0 "
-                             "(inf: every robot hears every other)")
         spec = dataclasses.replace(spec, radio_range=float(radio_range))
     return Team(spec, exported, world, float(spacing))
 
