@@ -57,7 +57,7 @@ def main(argv=None) -> None:
     parser.add_argument("--footprints", default="%d,%d" % DEFAULT_FOOTPRINTS,
                         help="building sides drawn from LO..HI voxels")
     parser.add_argument("--radio-range", type=float, default=None,
-                        help="fly every planner at this range (> 0, inf allowed) instead "
+                        help="fly every planner at this range (inf allowed) instead "
                              "of the export's radio.range")
     parser.add_argument("--combine", nargs="+", type=Path, metavar="FILE",
                         help="print the figures over training seeds from each seed's "

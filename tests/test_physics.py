@@ -170,13 +170,17 @@ def test_a_team_flies_at_a_radio_range_given_instead_of_the_exports(capsys):
     assert team.spec.radio_range != 0.3
     assert near.spec == dataclasses.replace(team.spec, radio_range=0.3)
     flight = load_script("benchmarks/flight.py")
-    for bad in ("0", "-0.5", "nan"):
+    # The config's rules for radio.range: at least 0 and above radio.collision_distance.
+    for bad, wrong, allowed in (("0", "radio.collision_distance: got 0.05",
+                                 "less than radio.range = 0.0"),
+                                ("-0.5", "radio.range: got -0.5", "a number in [0, inf]"),
+                                ("nan", "radio.range: got nan", "a number")):
         with pytest.raises(SystemExit) as refused:
             flight.main(["--radio-range", bad, "--worlds", "1"])
         assert refused.value.code == 2
         error = capsys.readouterr().err.strip().splitlines()
-        assert len(error) == 1 and error[0].startswith(f"error: radio range: got {float(bad)}")
-        assert "allowed: a number > 0" in error[0]
+        assert len(error) == 1 and error[0].startswith(f"error: {wrong}")
+        assert f"allowed: {allowed}" in error[0]
 
 
 def test_a_short_mission_of_the_shipped_policy_is_safe():

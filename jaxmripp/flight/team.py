@@ -31,12 +31,9 @@ def load_team(export: Path, footprints: tuple[int, int] | None = None,
     there is one (else the default config's world) at the export's size, random layout
     (the test layout), the largest window count; footprints (lo, hi): building sides drawn
     from lo .. hi voxels instead of the trained world's squares; radio_range: the team's
-    radio range (> 0, inf allowed) instead of the export's `radio.range`."""
+    radio range (the config's rules for radio.range) instead of the export's `radio.range`."""
     from jaxmripp import config as cfgmod
 
-    if radio_range is not None and not radio_range > 0:  # NaN fails too
-        raise ValueError(f"radio range: got {radio_range}; allowed: a number > 0 "
-                         "(inf: every robot hears every other)")
     exported = fmt.load(export)
     directory = Path(export) if Path(export).is_dir() else Path(export).parent
     cfg = cfgmod.load(directory / "config.yaml" if (directory / "config.yaml").exists()
@@ -46,12 +43,13 @@ def load_team(export: Path, footprints: tuple[int, int] | None = None,
     if footprints is not None:  # equal sides: the square footprints of the trained world
         lo, hi = footprints
         world.update(footprint_min=0 if lo == hi else lo, footprint=hi)
-    world = cfgmod.from_dict({"world": world}, base=cfg).world  # validated
+    radio = {} if radio_range is None else {"radio": {"range": radio_range}}
+    checked = cfgmod.from_dict({"world": world} | radio, base=cfg)  # the config's rules
     spacing = exported.header["config"]["robots"].get("pad_spacing", cfg.robots.pad_spacing)
     spec = exported.spec
     if radio_range is not None:
-        spec = dataclasses.replace(spec, radio_range=float(radio_range))
-    return Team(spec, exported, world, float(spacing))
+        spec = dataclasses.replace(spec, radio_range=checked.radio.range)
+    return Team(spec, exported, checked.world, float(spacing))
 
 
 DEFAULT_FOOTPRINTS = (2, 5)  # building sides in voxels (2.4 m to 6 m in the default box)
