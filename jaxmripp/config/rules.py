@@ -118,6 +118,8 @@ RULES: dict[str, tuple] = {
     "ppo.teacher_updates": _NONNEG,
     "ppo.teacher": _choice("nbv", "nbv_ahead", "nbv_targets", "oracle_rate", "oracle_city"),
     "ppo.teacher_facade": _NONNEG,
+    "ppo.search_coef": _NONNEG,
+    "ppo.search_simulations": _range(2, 4096),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),
@@ -236,6 +238,10 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("policy.ahead_rated", cfg.policy.ahead_rated,
                          "false, or true with policy.ahead_branches > 0 and "
                          "policy.belief_features true (it weighs the lookahead by the belief)"))
+    if cfg.ppo.search_coef > 0 and not cfg.policy.ahead_branches:
+        problems.append(("ppo.search_coef", cfg.ppo.search_coef,
+                         "0 while policy.ahead_branches is 0 (the search values candidates "
+                         "by the lookahead input)"))
     problems += _rated_input_checks(cfg)
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,

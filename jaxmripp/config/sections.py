@@ -177,6 +177,11 @@ class PPOConfig:
     # the weight of unknown facade voxels in the teacher's score; nbv_team's tuned weight
     # by default (a training setting, chosen by the trained policies on training layouts)
     teacher_facade: float = 2.0
+    # > 0: search-based policy improvement (jaxmripp.learn.search): the loss adds this
+    # weight x the cross-entropy from a Gumbel MuZero search's improved policy over the
+    # candidates, valued by the lookahead input (needs policy.ahead_branches > 0)
+    search_coef: float = 0.0
+    search_simulations: int = 16  # the search's simulations (and candidates it considers)
 
 
 @dataclasses.dataclass(frozen=True)

@@ -28,6 +28,7 @@ from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
+from jaxmripp.learn.search import improved_policy
 from jaxmripp.parallel.blocks import map_blocks, sum_blocks
 from jaxmripp.parallel.mesh import DataParallel
 from jaxmripp.spec import layout
@@ -51,6 +52,8 @@ class Transition:
     # (...,) int32 the teacher's choice (ppo.teacher = nbv_ahead), NO_CHOICE where the
     # teacher did not decide; None: the loss takes the next-best-view choice on `obs`
     teacher: jax.Array | None = None
+    # (..., L) float32 the search's improved policy (ppo.search_coef > 0), else None
+    search: jax.Array | None = None
 
 
 @struct.dataclass
@@ -122,7 +125,8 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
         data: DataParallel | None = None):
     """The policy's step for every robot of E environments, block by block: memory
     (E, N, W), obs (E, N, ...) and one key per environment (E, 2) -> new memory
-    (E, N, W), sampled action, its log-probability and the value (E, N)."""
+    (E, N, W), sampled action, its log-probability, the value (E, N) and the masked
+    logits (E, N, L)."""
 
     def block(inputs, params):
         memory, obs, keys = inputs
@@ -130,7 +134,7 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
         dist = distribution(logits, obs.mask)
         # One key per environment, so a draw does not depend on the block it falls in.
         action = jax.vmap(jax.random.categorical)(keys, dist.logits)
-        return memory, action, dist.log_prob(action), value
+        return memory, action, dist.log_prob(action), value, dist.logits
 
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 
@@ -175,8 +179,8 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
         offered = critic_inputs(cfg, runner.obs, runner.env_state)
-        memory, action, log_prob, value = act(network, net_params, runner.memory,
-                                              offered, act_keys, cfg.train.blocks, data)
+        memory, action, log_prob, value, logits = act(
+            network, net_params, runner.memory, offered, act_keys, cfg.train.blocks, data)
         active = jnp.any(runner.obs.mask, axis=-1)
         choice = None
         if teach is not None:
@@ -184,6 +188,13 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
             choice = jax.lax.cond(teacher.weight > 0, team,
                                   lambda *_: jnp.full_like(action, NO_CHOICE),
                                   act_keys, offered, runner.env_state)
+        search = None
+        if cfg.ppo.search_coef > 0:  # its own key, so runs without it draw as before
+            rows = lambda x: x.reshape(-1, x.shape[-1])
+            search = improved_policy(
+                jax.random.fold_in(key_act, 1), rows(logits), rows(runner.obs.mask),
+                rows(runner.obs.features[..., layout.AHEAD_COLUMN]),
+                cfg.ppo.search_simulations).reshape(logits.shape)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
             dyn, reset_obs, reset_state, max_resets, pool_used)
@@ -199,7 +210,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
             acted=info.acted.reshape(-1))
         ret = jnp.where(ended[:, None], 0.0, ret)
         transition = Transition(offered, runner.memory, action, log_prob, value, reward,
-                                terminal, active, choice)
+                                terminal, active, choice, search)
         return (_split(Runner(state, obs, memory, ret), data), pool_used), (transition, stats)
 
     (runner, _), (transitions, stats) = jax.lax.scan(
@@ -326,9 +337,15 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     imitation = -share(jnp.where(taught, dist.log_prob(jnp.maximum(choice, 0)), 0.0))
     total = (policy_loss + cfg.value_coef * value_loss - cfg.entropy_coef * entropy
              + teacher.weight * imitation)
+    parts = dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
+                 imitation=imitation)
+    if batch.search is not None:
+        log_probs = jax.nn.log_softmax(dist.logits)
+        parts["search"] = -share(jnp.where(jnp.any(batch.obs.mask, axis=-1),
+                                           (batch.search * log_probs).sum(-1), 0.0))
+        total += cfg.search_coef * parts["search"]
     approx_kl = share((ratio - 1.0) - jnp.log(ratio))
-    return total, dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
-                       approx_kl=approx_kl, imitation=imitation)
+    return total, dict(parts, approx_kl=approx_kl)
 
 
 def update(key, net_params, opt_state, network, optimizer, transitions: Transition,

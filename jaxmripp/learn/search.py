@@ -1,0 +1,47 @@
+"""Search-based policy improvement (`ppo.search_coef`): a Gumbel MuZero search (`mctx`)
+over each robot's candidates whose improved policy the loss pulls the policy toward.
+
+The model is the robot's own: a candidate's value is its lookahead input `ahead_rate`
+(`jaxmripp.spec.layout`: the two-flight value of the view gain on the robot's map, each
+facade weighed by its target belief with `policy.ahead_rated`), reached in one step
+(depth 1, discount 0: the value already counts the second flight). The search starts from
+the policy's own logits; its improved policy (`PolicyOutput.action_weights`) is
+softmax(logits + sigma(completed values)), which keeps what the policy learned from its
+returns and moves it toward what the model rates higher. Unlike a fixed teacher's choice,
+the target moves with the policy, so the policy can leave the planner it started from.
+The root's value, which completes the values of candidates the search did not visit, is
+the model's value under the policy (its probabilities times `ahead_rate`), so values and
+completions share one scale.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import mctx
+
+from jaxmripp.learn.policy import masked_logits, softmax
+
+
+def improved_policy(key, logits, mask, values, simulations: int):
+    """(B, L) logits, feasibility mask and candidate values -> (B, L) float32 improved
+    policy, 0 on infeasible candidates (a row with none feasible gives finite weights,
+    which the loss leaves out with the rest of that robot's sample)."""
+    invalid = ~mask & jnp.any(mask, axis=-1, keepdims=True)  # none feasible: any
+    model_value = jnp.where(mask, values, 0.0)
+    root = mctx.RootFnOutput(
+        prior_logits=logits,
+        value=(softmax(masked_logits(logits, mask)) * model_value).sum(-1),
+        embedding=model_value)
+
+    def recurrent_fn(_, __, action, embedding):
+        batch = jnp.arange(action.shape[0])
+        out = mctx.RecurrentFnOutput(
+            reward=embedding[batch, action], discount=jnp.zeros_like(action, jnp.float32),
+            prior_logits=jnp.zeros_like(embedding), value=jnp.zeros_like(action, jnp.float32))
+        return out, embedding
+
+    out = mctx.gumbel_muzero_policy(
+        (), key, root, recurrent_fn, simulations, invalid_actions=invalid, max_depth=1,
+        max_num_considered_actions=min(simulations, logits.shape[-1]))
+    return jax.lax.stop_gradient(out.action_weights)

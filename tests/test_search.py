@@ -1,0 +1,101 @@
+"""Search-based policy improvement (jaxmripp.learn.search) and its part of the PPO loss."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxmripp import config as cfgmod
+from jaxmripp.config import ConfigError
+from jaxmripp.learn import ppo, search
+from jaxmripp.learn import train as trainmod
+from tests.test_train import _random_observations
+
+
+def _draw(rows, candidates, seed):
+    keys = jax.random.split(jax.random.PRNGKey(seed), 3)
+    logits = jax.random.normal(keys[0], (rows, candidates))
+    mask = jax.random.bernoulli(keys[1], 0.5, (rows, candidates)).at[:, 0].set(True)
+    values = jax.random.uniform(keys[2], (rows, candidates))
+    return logits, mask, values
+
+
+def test_every_candidate_searched_moves_the_logits_by_a_rising_line_in_its_value():
+    """With every feasible candidate considered (fewer than the simulations), Gumbel
+    MuZero's improved policy is softmax(logits + s (value - min) / (max - min)) with one
+    s > 0 per row: log pi' - logits lies on a rising line in the value, and infeasible
+    candidates get weight 0."""
+    logits, mask, values = _draw(6, 10, seed=0)
+    weights = np.asarray(search.improved_policy(jax.random.PRNGKey(1), logits, mask, values, 16))
+    m = np.asarray(mask)
+    assert np.all(weights[~m] == 0)
+    np.testing.assert_allclose(weights.sum(-1), 1.0, rtol=1e-5)
+    for row in range(len(m)):
+        if m[row].sum() < 3:
+            continue
+        q = np.asarray(values[row], np.float64)[m[row]]
+        shift = np.log(weights[row][m[row]].astype(np.float64)) - np.asarray(logits[row])[m[row]]
+        slope, intercept = np.polyfit(q, shift, 1)
+        np.testing.assert_allclose(shift, slope * q + intercept, atol=1e-3)
+        assert slope > 1.0
+
+
+def test_equal_values_leave_the_policy_as_it_is_and_a_dominant_one_takes_the_weight():
+    logits, mask, values = _draw(4, 12, seed=2)
+    same = search.improved_policy(jax.random.PRNGKey(3), logits, mask,
+                                  jnp.full(values.shape, 0.4), 16)
+    prior = jax.nn.softmax(jnp.where(mask, logits, -jnp.inf))
+    np.testing.assert_allclose(np.asarray(same), np.asarray(prior), atol=1e-5)
+    # Equal logits and one value far above the rest (2 against [0, 1)): that candidate
+    # gets most of the weight.
+    best = np.asarray(jax.random.categorical(jax.random.PRNGKey(5), jnp.where(mask, 0.0, -jnp.inf)))
+    values = values.at[jnp.arange(len(best)), best].set(2.0)
+    flat = search.improved_policy(jax.random.PRNGKey(3), jnp.zeros_like(logits), mask, values, 16)
+    assert np.all(np.asarray(flat).argmax(-1) == best)
+    assert np.all(np.take_along_axis(np.asarray(flat), best[:, None], -1) > 0.5)
+
+
+def test_the_loss_adds_the_cross_entropy_from_the_stored_search_policy():
+    """parts["search"] is -sum(pi' log pi) averaged over robots with a choice, checked
+    against a NumPy log-softmax; the loss adds it x ppo.search_coef."""
+    coef = 0.6
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=0", f"ppo.search_coef={coef}",
+                                             "policy.ahead_branches=4"])
+    trainer = trainmod.Trainer.build(cfgmod.load("tests/smoke.yaml"))
+    params = trainer.init().params
+    envs, robots = cfg.train.envs, cfg.robots.count
+    obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
+    obs = obs.replace(mask=obs.mask.at[0, 0, 0].set(False))  # env 0, robot 0: no choice
+    memory = jnp.zeros((1, envs, robots, cfg.policy.width))
+    _, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
+    active = jnp.any(obs.mask, axis=-1)
+    zeros = jnp.zeros(value.shape)
+    target = jax.random.dirichlet(jax.random.PRNGKey(4), jnp.ones(obs.mask.shape[-1]),
+                                  value.shape) * obs.mask
+    target = target / jnp.maximum(target.sum(-1, keepdims=True), 1e-9)
+    batch = ppo.Transition(obs=obs, memory=memory, action=jnp.zeros(value.shape, jnp.int32),
+                           log_prob=zeros, value=value, reward=zeros,
+                           terminal=jnp.ones(value.shape, bool), active=active)
+    moments = ppo.advantage_moments(active.astype(jnp.float32), zeros, blocks=0)
+    total, parts = ppo.loss_fn(params, trainer.network, batch.replace(search=target), zeros,
+                               value, moments, cfg.ppo)
+    plain, plain_parts = ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,
+                                     cfg.ppo)
+    assert "search" not in plain_parts
+
+    m, z, t = (np.asarray(x, np.float64) for x in (obs.mask, logits, target))
+    act = np.asarray(active)
+    z = np.where(m[act] > 0, z[act], -np.inf)
+    log_softmax = z - z.max(-1, keepdims=True)
+    log_softmax -= np.log(np.exp(log_softmax).sum(-1, keepdims=True))
+    expected = -np.where(t[act] > 0, t[act] * log_softmax, 0.0).sum(-1).mean()
+    assert not act[0, 0, 0]
+    np.testing.assert_allclose(float(parts["search"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
+
+
+def test_the_search_needs_the_lookahead_input():
+    with pytest.raises(ConfigError, match="ppo.search_coef"):
+        cfgmod.load("tests/smoke.yaml", ["ppo.search_coef=1"])
+    with pytest.raises(ConfigError, match="ppo.search_simulations"):
+        cfgmod.load("tests/smoke.yaml", ["ppo.search_simulations=1"])
