@@ -8,8 +8,7 @@ import pytest
 from jaxmripp import config as cfgmod
 from jaxmripp.config import ConfigError
 from jaxmripp.learn import ppo, search
-from jaxmripp.learn import train as trainmod
-from tests.test_train import _random_observations
+from tests.test_train import decision_batch
 
 
 # Compiled once per shape: op by op the search takes seconds.
@@ -65,22 +64,12 @@ def test_the_loss_adds_the_cross_entropy_from_the_stored_search_policy():
     coef = 0.6
     cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=0", f"ppo.search_coef={coef}",
                                              "policy.ahead_branches=4"])
-    trainer = trainmod.Trainer.build(cfgmod.load("tests/smoke.yaml"))
-    params = trainer.init().params
-    envs, robots = cfg.train.envs, cfg.robots.count
-    obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
-    obs = obs.replace(mask=obs.mask.at[0, 0, 0].set(False))  # env 0, robot 0: no choice
-    memory = jnp.zeros((1, envs, robots, cfg.policy.width))
-    _, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
-    active = jnp.any(obs.mask, axis=-1)
+    trainer, params, batch, logits, moments = decision_batch()
+    obs, value, active = batch.obs, batch.value, batch.active
     zeros = jnp.zeros(value.shape)
     target = jax.random.dirichlet(jax.random.PRNGKey(4), jnp.ones(obs.mask.shape[-1]),
                                   value.shape) * obs.mask
     target = target / jnp.maximum(target.sum(-1, keepdims=True), 1e-9)
-    batch = ppo.Transition(obs=obs, memory=memory, action=jnp.zeros(value.shape, jnp.int32),
-                           log_prob=zeros, value=value, reward=zeros,
-                           terminal=jnp.ones(value.shape, bool), active=active)
-    moments = ppo.advantage_moments(active.astype(jnp.float32), zeros, blocks=0)
     total, parts = ppo.loss_fn(params, trainer.network, batch.replace(search=target), zeros,
                                value, moments, cfg.ppo)
     plain, plain_parts = ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,

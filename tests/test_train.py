@@ -178,18 +178,15 @@ def test_ppo_loss_falls_on_a_fixed_batch(algo):
     assert losses[-1] < losses[0]
 
 
-def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
-    """`imitation` is -log pi(nbv choice) averaged over active samples, checked against a
-    NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
-    add nothing (and no NaN). The weight falls linearly to 0 over ppo.teacher_updates."""
-    facade, coef = 3.0, 0.7  # ppo.teacher_facade: not the default 2
-    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
-                                             f"ppo.teacher_facade={facade}"])
-    trainer = trainmod.Trainer.build(cfgmod.load("tests/smoke.yaml"))
+def decision_batch():
+    """An untrained smoke-config network's one-step batch of random observations, env 0's
+    robot 0 with nothing feasible: (trainer, params, batch, logits, advantage moments)."""
+    cfg = cfgmod.load("tests/smoke.yaml")
+    trainer = trainmod.Trainer.build(cfg)
     params = trainer.init().params
     envs, robots = cfg.train.envs, cfg.robots.count
     obs = _random_observations(jax.random.PRNGKey(3), trainer, (1, envs, robots))
-    obs = obs.replace(mask=obs.mask.at[0, 0, 0].set(False))  # env 0, robot 0: no choice
+    obs = obs.replace(mask=obs.mask.at[0, 0, 0].set(False))
     memory = jnp.zeros((1, envs, robots, cfg.policy.width))
     _, logits, value = ppo.apply_batched(trainer.network, params, memory, obs)
     active = jnp.any(obs.mask, axis=-1)
@@ -198,6 +195,19 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
                            log_prob=zeros, value=value, reward=zeros,
                            terminal=jnp.ones(value.shape, bool), active=active)
     moments = ppo.advantage_moments(active.astype(jnp.float32), zeros, blocks=0)
+    return trainer, params, batch, logits, moments
+
+
+def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
+    """`imitation` is -log pi(nbv choice) averaged over active samples, checked against a
+    NumPy log-softmax; the loss adds it x ppo.teacher_coef; robots with nothing feasible
+    add nothing (and no NaN). The weight falls linearly to 0 over ppo.teacher_updates."""
+    facade, coef = 3.0, 0.7  # ppo.teacher_facade: not the default 2
+    cfg = cfgmod.load("tests/smoke.yaml", [f"ppo.teacher_coef={coef}",
+                                             f"ppo.teacher_facade={facade}"])
+    trainer, params, batch, logits, moments = decision_batch()
+    obs, value, active = batch.obs, batch.value, batch.active
+    zeros = jnp.zeros(value.shape)
     loss = lambda teacher: ppo.loss_fn(params, trainer.network, batch, zeros,  # noqa: E731
                                        value, moments, cfg.ppo, teacher)
     total, parts = loss(ppo.Teacher.at(cfg.ppo, 0))
