@@ -1,4 +1,5 @@
-"""Search-based policy improvement (jaxmripp.learn.search) and its part of the PPO loss."""
+"""Search-based policy improvement (jaxmripp.learn.search); its part of the PPO loss is
+checked beside kickstarting's in tests/test_train.py."""
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +8,7 @@ import pytest
 
 from jaxmripp import config as cfgmod
 from jaxmripp.config import ConfigError
-from jaxmripp.learn import ppo, search
-from tests.test_train import decision_batch
+from jaxmripp.learn import search
 
 
 # Compiled once per shape: op by op the search takes seconds.
@@ -56,35 +56,6 @@ def test_equal_values_leave_the_policy_as_it_is_and_a_dominant_one_takes_the_wei
     flat = _improved(jax.random.PRNGKey(3), jnp.zeros_like(logits), mask, values, 16)
     assert np.all(np.asarray(flat).argmax(-1) == best)
     assert np.all(np.take_along_axis(np.asarray(flat), best[:, None], -1) > 0.5)
-
-
-def test_the_loss_adds_the_cross_entropy_from_the_stored_search_policy():
-    """parts["search"] is -sum(pi' log pi) averaged over robots with a choice, checked
-    against a NumPy log-softmax; the loss adds it x ppo.search_coef."""
-    coef = 0.6
-    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=0", f"ppo.search_coef={coef}",
-                                             "policy.ahead_branches=4"])
-    trainer, params, batch, logits, moments = decision_batch()
-    obs, value, active = batch.obs, batch.value, batch.active
-    zeros = jnp.zeros(value.shape)
-    target = jax.random.dirichlet(jax.random.PRNGKey(4), jnp.ones(obs.mask.shape[-1]),
-                                  value.shape) * obs.mask
-    target = target / jnp.maximum(target.sum(-1, keepdims=True), 1e-9)
-    total, parts = ppo.loss_fn(params, trainer.network, batch.replace(search=target), zeros,
-                               value, moments, cfg.ppo)
-    plain, plain_parts = ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,
-                                     cfg.ppo)
-    assert "search" not in plain_parts
-
-    m, z, t = (np.asarray(x, np.float64) for x in (obs.mask, logits, target))
-    act = np.asarray(active)
-    z = np.where(m[act] > 0, z[act], -np.inf)
-    log_softmax = z - z.max(-1, keepdims=True)
-    log_softmax -= np.log(np.exp(log_softmax).sum(-1, keepdims=True))
-    expected = -np.where(t[act] > 0, t[act] * log_softmax, 0.0).sum(-1).mean()
-    assert not act[0, 0, 0]
-    np.testing.assert_allclose(float(parts["search"]), expected, rtol=1e-4)
-    np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
 
 
 def test_the_search_needs_the_lookahead_input():

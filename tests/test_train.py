@@ -1,5 +1,6 @@
 """PPO and the training loop on the smoke config (one chunk compilation, shared)."""
 
+import functools
 import json
 import shutil
 import subprocess
@@ -178,6 +179,7 @@ def test_ppo_loss_falls_on_a_fixed_batch(algo):
     assert losses[-1] < losses[0]
 
 
+@functools.lru_cache(maxsize=1)  # built once for the two loss tests
 def decision_batch():
     """An untrained smoke-config network's one-step batch of random observations, env 0's
     robot 0 with nothing feasible: (trainer, params, batch, logits, advantage moments)."""
@@ -261,6 +263,35 @@ def test_kickstarting_adds_the_cross_entropy_from_the_next_best_view_choice():
     fifty = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=1", "ppo.teacher_updates=50"]).ppo
     jitted = jax.jit(lambda u: ppo.Teacher.at(fifty, u).weight)
     assert [float(jitted(u)) for u in (49, 50, 51)] == [np.float32(1 / 50), 0.0, 0.0]
+
+
+def test_the_loss_adds_the_cross_entropy_from_the_stored_search_policy():
+    """parts["search"] is -sum(pi' log pi) averaged over robots with a choice, checked
+    against a NumPy log-softmax; the loss adds it x ppo.search_coef."""
+    coef = 0.6
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.teacher_coef=0", f"ppo.search_coef={coef}",
+                                             "policy.ahead_branches=4"])
+    trainer, params, batch, logits, moments = decision_batch()
+    obs, value, active = batch.obs, batch.value, batch.active
+    zeros = jnp.zeros(value.shape)
+    target = jax.random.dirichlet(jax.random.PRNGKey(4), jnp.ones(obs.mask.shape[-1]),
+                                  value.shape) * obs.mask
+    target = target / jnp.maximum(target.sum(-1, keepdims=True), 1e-9)
+    total, parts = ppo.loss_fn(params, trainer.network, batch.replace(search=target), zeros,
+                               value, moments, cfg.ppo)
+    plain, plain_parts = ppo.loss_fn(params, trainer.network, batch, zeros, value, moments,
+                                     cfg.ppo)
+    assert "search" not in plain_parts
+
+    m, z, t = (np.asarray(x, np.float64) for x in (obs.mask, logits, target))
+    act = np.asarray(active)
+    z = np.where(m[act] > 0, z[act], -np.inf)
+    log_softmax = z - z.max(-1, keepdims=True)
+    log_softmax -= np.log(np.exp(log_softmax).sum(-1, keepdims=True))
+    expected = -np.where(t[act] > 0, t[act] * log_softmax, 0.0).sum(-1).mean()
+    assert not act[0, 0, 0]
+    np.testing.assert_allclose(float(parts["search"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
 
 
 def _start_runner(cfg, trainer, dyn) -> ppo.Runner:
