@@ -191,9 +191,11 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         search = None
         if cfg.ppo.search_coef > 0:  # its own key, so runs without it draw as before
             rows = lambda x: x.reshape(-1, x.shape[-1])
+            ahead = layout.features(ahead=True, belief=cfg.policy.belief_features).index(
+                "ahead_rate")
             search = improved_policy(
                 jax.random.fold_in(key_act, 1), rows(logits), rows(runner.obs.mask),
-                rows(runner.obs.features[..., layout.AHEAD_COLUMN]),
+                rows(runner.obs.features[..., ahead]),
                 cfg.ppo.search_simulations).reshape(logits.shape)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
@@ -340,9 +342,8 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     parts = dict(policy_loss=policy_loss, value_loss=value_loss, entropy=entropy,
                  imitation=imitation)
     if batch.search is not None:
-        log_probs = jax.nn.log_softmax(dist.logits)
-        parts["search"] = -share(jnp.where(jnp.any(batch.obs.mask, axis=-1),
-                                           (batch.search * log_probs).sum(-1), 0.0))
+        # Robots with nothing feasible are inactive: `share` leaves them out.
+        parts["search"] = -share((batch.search * jax.nn.log_softmax(dist.logits)).sum(-1))
         total += cfg.search_coef * parts["search"]
     approx_kl = share((ratio - 1.0) - jnp.log(ratio))
     return total, dict(parts, approx_kl=approx_kl)

@@ -69,7 +69,6 @@ FEATURES = (
     "peer_distance",
 )  # fmt: skip
 AHEAD_FEATURES = ("ahead_rate",)  # appended to FEATURES with policy.ahead_branches > 0
-AHEAD_COLUMN = -1  # where `ahead_rate` stands in the features: always the last column
 # after FEATURES, before AHEAD_FEATURES, with policy.belief_features
 BELIEF_FEATURES = ("view_windows", "view_windows_per_cost")
 ROBOT_STATE = (
