@@ -58,8 +58,39 @@ def test_equal_values_leave_the_policy_as_it_is_and_a_dominant_one_takes_the_wei
     assert np.all(np.take_along_axis(np.asarray(flat), best[:, None], -1) > 0.5)
 
 
-def test_the_search_needs_the_lookahead_input():
+def test_the_root_value_completes_the_candidates_not_visited():
+    """4 simulations over 10 feasible candidates visit 4 of them; the other 6 take a mix of
+    the root's value and the visited values. A root value above every candidate's lifts
+    the unvisited ones above every visited one (relative to the prior), one below sinks
+    them; without a root value the search uses the policy's mean of the values."""
+    logits, _, values = _draw(6, 10, seed=6)
+    mask = jnp.ones(values.shape, bool)
+    key = jax.random.PRNGKey(7)
+    shift = lambda w: np.log(np.asarray(w, np.float64)) - np.asarray(  # noqa: E731
+        jax.nn.log_softmax(logits), np.float64)
+    high = shift(_improved(key, logits, mask, values, 4, jnp.full(6, 100.0)))
+    low = shift(_improved(key, logits, mask, values, 4, jnp.full(6, -100.0)))
+    mean = _improved(key, logits, mask, values, 4, None)
+    # The same key draws the same Gumbel noise, so the same 4 candidates are visited: the
+    # 4 lowest shifts under the high root value, the 4 highest under the low one.
+    for h, lo in zip(high, low):
+        visited = np.argsort(h)[:4]
+        unvisited = np.setdiff1d(np.arange(10), visited)
+        assert set(visited) == set(np.argsort(lo)[-4:])
+        assert h[unvisited].min() > h[visited].max()
+        assert lo[unvisited].max() < lo[visited].min()
+    policy_mean = (jax.nn.softmax(logits) * values).sum(-1)
+    np.testing.assert_allclose(np.asarray(mean),
+                               np.asarray(_improved(key, logits, mask, values, 4, policy_mean)),
+                               atol=1e-6)
+
+
+def test_the_search_needs_the_lookahead_input_or_learned_values():
     with pytest.raises(ConfigError, match="ppo.search_coef"):
         cfgmod.load("tests/smoke.yaml", ["ppo.search_coef=1"])
+    learned = cfgmod.load("tests/smoke.yaml", ["ppo.search_coef=1", "ppo.search_value=learned"])
+    assert learned.policy.ahead_branches == 0 and learned.ppo.search_value == "learned"
+    with pytest.raises(ConfigError, match="ppo.search_value"):
+        cfgmod.load("tests/smoke.yaml", ["ppo.search_value=critic"])
     with pytest.raises(ConfigError, match="ppo.search_simulations"):
         cfgmod.load("tests/smoke.yaml", ["ppo.search_simulations=1"])

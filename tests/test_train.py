@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from jaxmripp import config as cfgmod, export, pipeline
-from jaxmripp.learn import ppo
+from jaxmripp.learn import policy as policymod, ppo
 from jaxmripp.learn import train as trainmod
 from jaxmripp.learn.checkpoint import Checkpoints, CheckpointError
 from jaxmripp.sim.observation import Observation
@@ -288,10 +288,59 @@ def test_the_loss_adds_the_cross_entropy_from_the_stored_search_policy():
     z = np.where(m[act] > 0, z[act], -np.inf)
     log_softmax = z - z.max(-1, keepdims=True)
     log_softmax -= np.log(np.exp(log_softmax).sum(-1, keepdims=True))
-    expected = -np.where(t[act] > 0, t[act] * log_softmax, 0.0).sum(-1).mean()
+    expected = -(t[act] * np.where(t[act] > 0, log_softmax, 0.0)).sum(-1).mean()
     assert not act[0, 0, 0]
     np.testing.assert_allclose(float(parts["search"]), expected, rtol=1e-4)
     np.testing.assert_allclose(float(total), float(plain) + coef * expected, rtol=1e-4)
+
+
+def test_the_learned_search_values_candidates_by_an_action_value_head():
+    """ppo.search_value=learned: the network sows q = q_out(relu(q_hidden([E, d]))), one
+    value per candidate (checked in NumPy from the encoder's and decoder's captured
+    outputs), and leaves the actor and critic as they are; the loss adds value_coef x
+    0.5 (q[action] - target)^2 averaged over robots with a choice."""
+    cfg = cfgmod.load("tests/smoke.yaml", ["ppo.search_coef=1", "ppo.search_value=learned"])
+    learner = trainmod.Trainer.build(cfg)
+    network, params = learner.network, learner.init().params
+    plain, _, batch, _, moments = decision_batch()
+    assert network.action_values and not plain.network.action_values
+    memory, obs = batch.memory, batch.obs
+    *outputs, q = ppo.apply_batched(network, params, memory, obs, action_values=True)
+    for ours, theirs in zip(outputs, ppo.apply_batched(plain.network, params, memory, obs)):
+        np.testing.assert_array_equal(np.asarray(ours), np.asarray(theirs))
+
+    flat = lambda x: x.reshape((-1, *x.shape[3:]))  # noqa: E731  (1, E, N, ...) -> rows
+
+    def captured(m, o):
+        _, state = network.apply(params, m, o, capture_intermediates=True,
+                                 mutable=["intermediates"])
+        inner = state["intermediates"]
+        return inner["encoder_norm"]["__call__"][0], inner["decoder"]["__call__"][0][0]
+
+    encoded, decoded = (np.asarray(x, np.float64) for x in
+                        jax.vmap(captured)(flat(memory), jax.tree.map(flat, obs)))
+    w = policymod.flatten_params(params)
+    pairs = np.concatenate([encoded, np.broadcast_to(decoded[:, None], encoded.shape)], -1)
+    hidden = np.maximum(pairs @ w["q_hidden/kernel"] + w["q_hidden/bias"], 0.0)
+    expected_q = (hidden @ w["q_out/kernel"] + w["q_out/bias"])[..., 0]
+    np.testing.assert_allclose(flat(np.asarray(q)), expected_q, rtol=1e-4, atol=1e-5)
+
+    action = jax.random.categorical(jax.random.PRNGKey(8),
+                                    jnp.where(obs.mask, 0.0, -jnp.inf)).astype(jnp.int32)
+    targets = jax.random.normal(jax.random.PRNGKey(9), batch.value.shape)
+    taught = batch.replace(action=action)
+    zeros = jnp.zeros(batch.value.shape)
+    total, parts = ppo.loss_fn(params, network, taught, zeros, targets, moments, cfg.ppo)
+    base, base_parts = ppo.loss_fn(params, plain.network, taught, zeros, targets, moments,
+                                   cfg.ppo)
+    assert "action_value_loss" not in base_parts
+    act = np.asarray(batch.active)
+    taken = np.take_along_axis(np.asarray(q), np.asarray(action)[..., None], -1)[..., 0]
+    expected = 0.5 * ((taken - np.asarray(targets)) ** 2)[act].mean()
+    assert not act.all()
+    np.testing.assert_allclose(float(parts["action_value_loss"]), expected, rtol=1e-4)
+    np.testing.assert_allclose(float(total), float(base) + cfg.ppo.value_coef * expected,
+                               rtol=1e-4)
 
 
 def _start_runner(cfg, trainer, dyn) -> ppo.Runner:

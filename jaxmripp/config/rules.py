@@ -120,6 +120,7 @@ RULES: dict[str, tuple] = {
     "ppo.teacher_facade": _NONNEG,
     "ppo.search_coef": _NONNEG,
     "ppo.search_simulations": _range(2, 4096),
+    "ppo.search_value": _choice("model", "learned"),
     "train.seed": _range(0, 2**31 - 1),
     "train.envs": _range(1, 1 << 20),
     "train.rollout_steps": _range(1, 4096),
@@ -238,10 +239,11 @@ def _run_checks(cfg: Config) -> list[tuple[str, Any, str]]:
         problems.append(("policy.ahead_rated", cfg.policy.ahead_rated,
                          "false, or true with policy.ahead_branches > 0 and "
                          "policy.belief_features true (it weighs the lookahead by the belief)"))
-    if cfg.ppo.search_coef > 0 and not cfg.policy.ahead_branches:
+    if (cfg.ppo.search_coef > 0 and cfg.ppo.search_value == "model"
+            and not cfg.policy.ahead_branches):
         problems.append(("ppo.search_coef", cfg.ppo.search_coef,
-                         "0 while policy.ahead_branches is 0 (the search values candidates "
-                         "by the lookahead input)"))
+                         "0 while policy.ahead_branches is 0 (the model search values "
+                         "candidates by the lookahead input; ppo.search_value=learned does not)"))
     problems += _rated_input_checks(cfg)
     if cfg.policy.width % cfg.policy.heads:
         problems.append(("policy.width", cfg.policy.width,

@@ -179,9 +179,13 @@ class PPOConfig:
     teacher_facade: float = 2.0
     # > 0: search-based policy improvement (jaxmripp.learn.search): the loss adds this
     # weight x the cross-entropy from a Gumbel MuZero search's improved policy over the
-    # candidates, valued by the lookahead input (needs policy.ahead_branches > 0)
+    # candidates
     search_coef: float = 0.0
     search_simulations: int = 16  # the search's simulations (and candidates it considers)
+    # what values the search's candidates: model (the lookahead input, needs
+    # policy.ahead_branches > 0) or learned (the network's action values, a head trained
+    # on the returns that followed each action, with the critic's value at the root)
+    search_value: str = "model"
 
 
 @dataclasses.dataclass(frozen=True)

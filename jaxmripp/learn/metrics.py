@@ -35,7 +35,8 @@ METRICS_FILE = "metrics.jsonl"
 TENSORBOARD_DIR = "tensorboard"
 WANDB_PROJECT = "jaxmripp"
 LOSSES = ("policy_loss", "value_loss", "entropy", "approx_kl", "imitation")
-SEARCH_LOSS = "search"  # only with ppo.search_coef > 0 (jaxmripp.learn.search)
+# Only with ppo.search_coef > 0 (jaxmripp.learn.search); the second with search_value=learned.
+SEARCH_LOSSES = ("search", "action_value_loss")
 REWARD_PARTS = ("r_exploration", "r_discovery", "r_communication")
 
 
@@ -57,7 +58,7 @@ def records(metrics: dict, done: int, samples_per_update: int, seconds: float) -
         if episodes:
             record["discovered"] = float(m["discovered_sum"][i] / episodes)
             record["return"] = float(m["return_sum"][i] / episodes)
-        record.update({name: float(m[name][i]) for name in (*LOSSES, SEARCH_LOSS) if name in m})
+        record.update({name: float(m[name][i]) for name in (*LOSSES, *SEARCH_LOSSES) if name in m})
         record.update({name: float(m["reward_parts"][i][j]) for j, name in enumerate(REWARD_PARTS)})
         record.update(seconds=round(seconds / count, 4),
                       agent_steps_per_s=round(count * samples_per_update / seconds, 1))

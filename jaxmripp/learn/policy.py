@@ -20,6 +20,8 @@ Forward pass (parameter names in quotes; `flatten_params` joins them with "/"):
     value = "value_out"(relu("value_hidden"(d)))             IPPO
           = "value_out"(relu("value_hidden"([relu("global_embed"(global_state)),
                                              robot_state])))  central critic (MAPPO)
+    q = "q_out"(relu("q_hidden"([E, d])))                    (L,) action values, sown as
+                                      "intermediates"/"action_values" (training only)
 
 Each block ("encoder_i", "decoder") holds "norm_attention", "attention" ("query",
 "key", "value", "out"), "norm_ff" and "ff" ("hidden", "out"). Attention is written out
@@ -153,6 +155,10 @@ class ActorCritic(nn.Module):
 
     config: PolicyConfig
     central_critic: bool = False  # MAPPO: value from global_state (+ own robot_state)
+    # A value per candidate (ppo.search_value=learned, the search's learned values). Sown
+    # rather than returned: callers that do not ask for it (the evaluation, the export)
+    # see the actor-critic they always saw.
+    action_values: bool = False
 
     @nn.compact
     def __call__(self, memory: jax.Array, obs: Observation):
@@ -209,6 +215,10 @@ class ActorCritic(nn.Module):
             critic_input = decoded
         hidden = nn.relu(nn.Dense(width, name="value_hidden")(critic_input))
         value = nn.Dense(1, name="value_out")(hidden)[0]
+        if self.action_values:
+            pairs = jnp.concatenate([encoded, jnp.broadcast_to(decoded, encoded.shape)], -1)
+            q = nn.Dense(1, name="q_out")(nn.relu(nn.Dense(width, name="q_hidden")(pairs)))
+            self.sow("intermediates", "action_values", q[:, 0])
 
         chex.assert_shape([new_memory, logits, value], [(width,), (n_candidates,), ()])
         return new_memory, logits, value

@@ -28,7 +28,7 @@ from jaxmripp.config import Config, PPOConfig
 from jaxmripp.sim.params import DynamicParams, EnvParams
 from jaxmripp.sim.observation import Observation
 from jaxmripp.learn.policy import ActorCritic, distribution, initial_memory
-from jaxmripp.learn.search import improved_policy
+from jaxmripp.learn.search import search_targets
 from jaxmripp.parallel.blocks import map_blocks, sum_blocks
 from jaxmripp.parallel.mesh import DataParallel
 from jaxmripp.spec import layout
@@ -87,7 +87,9 @@ class RolloutStats:
 
 
 def make_network(cfg: Config) -> ActorCritic:
-    return ActorCritic(cfg.policy, central_critic=cfg.ppo.algo == "mappo")
+    learned_search = cfg.ppo.search_coef > 0 and cfg.ppo.search_value == "learned"
+    return ActorCritic(cfg.policy, central_critic=cfg.ppo.algo == "mappo",
+                       action_values=learned_search)
 
 
 def critic_inputs(cfg: Config, obs: Observation, env_state: envmod.EnvState) -> Observation:
@@ -111,30 +113,40 @@ def _apply(network: ActorCritic, params, memory, obs: Observation):
     return network.apply(params, memory, obs)
 
 
-def apply_batched(network: ActorCritic, params, memory, obs: Observation):
-    """Applies the single-robot network over any leading axes of memory / obs."""
+@functools.partial(jax.jit, static_argnames="network", inline=True)
+def _apply_with_action_values(network: ActorCritic, params, memory, obs: Observation):
+    """`_apply` and the action values (L,) the network sows (`ActorCritic.action_values`)."""
+    outputs, sown = network.apply(params, memory, obs, mutable=["intermediates"])
+    return (*outputs, sown["intermediates"]["action_values"][0])
+
+
+def apply_batched(network: ActorCritic, params, memory, obs: Observation,
+                  action_values: bool = False):
+    """Applies the single-robot network over any leading axes of memory / obs: new
+    memory, logits and value, and with `action_values` the (..., L) action values."""
     lead = memory.shape[:-1]
     flat = lambda x: x.reshape((-1, *x.shape[len(lead):]))
-    fn = jax.vmap(lambda m, o: _apply(network, params, m, o))
-    new_memory, logits, value = fn(flat(memory), jax.tree.map(flat, obs))
-    unflat = lambda x: x.reshape((*lead, *x.shape[1:]))
-    return unflat(new_memory), unflat(logits), unflat(value)
+    one = _apply_with_action_values if action_values else _apply
+    outputs = jax.vmap(lambda m, o: one(network, params, m, o))(flat(memory),
+                                                               jax.tree.map(flat, obs))
+    return tuple(x.reshape((*lead, *x.shape[1:])) for x in outputs)
 
 
 def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: int,
         data: DataParallel | None = None):
     """The policy's step for every robot of E environments, block by block: memory
     (E, N, W), obs (E, N, ...) and one key per environment (E, 2) -> new memory
-    (E, N, W), sampled action, its log-probability, the value (E, N) and the masked
-    logits (E, N, L)."""
+    (E, N, W), sampled action, its log-probability, the value (E, N), the masked
+    logits (E, N, L) and the action values (E, N, L) of a network with them, else None."""
 
     def block(inputs, params):
         memory, obs, keys = inputs
-        memory, logits, value = apply_batched(network, params, memory, obs)
+        memory, logits, value, *q = apply_batched(network, params, memory, obs,
+                                                  network.action_values)
         dist = distribution(logits, obs.mask)
         # One key per environment, so a draw does not depend on the block it falls in.
         action = jax.vmap(jax.random.categorical)(keys, dist.logits)
-        return memory, action, dist.log_prob(action), value, dist.logits
+        return memory, action, dist.log_prob(action), value, dist.logits, (q or [None])[0]
 
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 
@@ -179,7 +191,7 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
         key_act, key_env = jax.random.split(key)
         act_keys = _split(jax.random.split(key_act, envs), data)
         offered = critic_inputs(cfg, runner.obs, runner.env_state)
-        memory, action, log_prob, value, logits = act(
+        memory, action, log_prob, value, logits, action_values = act(
             network, net_params, runner.memory, offered, act_keys, cfg.train.blocks, data)
         active = jnp.any(runner.obs.mask, axis=-1)
         choice = None
@@ -190,13 +202,8 @@ def rollout(key, runner: Runner, net_params, network: ActorCritic, cfg: Config,
                                   act_keys, offered, runner.env_state)
         search = None
         if cfg.ppo.search_coef > 0:  # its own key, so runs without it draw as before
-            rows = lambda x: x.reshape(-1, x.shape[-1])
-            ahead = layout.features(ahead=True, belief=cfg.policy.belief_features).index(
-                "ahead_rate")
-            search = improved_policy(
-                jax.random.fold_in(key_act, 1), rows(logits), rows(runner.obs.mask),
-                rows(runner.obs.features[..., ahead]),
-                cfg.ppo.search_simulations).reshape(logits.shape)
+            search = search_targets(jax.random.fold_in(key_act, 1), cfg, runner.obs, logits,
+                                    value, action_values)
         obs, state, reward, done, info, ended, pool_used = envmod.step_auto_reset(
             _split(jax.random.split(key_env, envs), data), runner.env_state, action, params,
             dyn, reset_obs, reset_state, max_resets, pool_used)
@@ -321,7 +328,8 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
     a minibatch's blocks add up to its loss; returns (loss, its parts). The part
     `imitation` is `teacher`'s cross-entropy over the samples it decided, in the loss x
     `teacher.weight`."""
-    _, logits, value = apply_batched(network, net_params, batch.memory, batch.obs)
+    _, logits, value, *q = apply_batched(network, net_params, batch.memory, batch.obs,
+                                         network.action_values)
     dist = distribution(logits, batch.obs.mask)
     log_prob = dist.log_prob(batch.action)
     weight = batch.active.astype(jnp.float32)
@@ -345,6 +353,10 @@ def loss_fn(net_params, network, batch: Transition, advantages, targets,
         # Robots with nothing feasible are inactive: `share` leaves them out.
         parts["search"] = -share((batch.search * jax.nn.log_softmax(dist.logits)).sum(-1))
         total += cfg.search_coef * parts["search"]
+    if q:  # the action value of the action taken, toward the return that followed it
+        taken = jnp.take_along_axis(q[0], batch.action[..., None], -1)[..., 0]
+        parts["action_value_loss"] = 0.5 * share((taken - targets) ** 2)
+        total += cfg.value_coef * parts["action_value_loss"]
     approx_kl = share((ratio - 1.0) - jnp.log(ratio))
     return total, dict(parts, approx_kl=approx_kl)
 
