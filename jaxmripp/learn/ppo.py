@@ -146,7 +146,8 @@ def act(network: ActorCritic, params, memory, obs: Observation, keys, blocks: in
         dist = distribution(logits, obs.mask)
         # One key per environment, so a draw does not depend on the block it falls in.
         action = jax.vmap(jax.random.categorical)(keys, dist.logits)
-        return memory, action, dist.log_prob(action), value, dist.logits, (q or [None])[0]
+        action_values = q[0] if q else None
+        return memory, action, dist.log_prob(action), value, dist.logits, action_values
 
     return map_blocks(block, (memory, obs, keys), params, blocks, data)
 
